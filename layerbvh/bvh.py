@@ -1,0 +1,167 @@
+"""The public LayerBVH object: build once, then trace closest hits or test occlusion in any mode."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import drjit as dr
+import numpy as np
+
+from . import backend as be
+from .layout import LayerLayout, check_layout, to_layer_layout
+from .sah import BinaryBVH, build_binned_sah
+from .stats import TraceStats
+from .validate import check_mesh, check_param
+from .walk import NO_HIT, DeviceLayout
+from .wavefront import MODES, trace as _trace
+
+MISS = 0xFFFFFFFF
+
+
+@dataclass
+class Hits:
+    """Closest hits, in the caller's array kind. Miss: t = inf, prim = 0xFFFFFFFF.
+    p = (1-u-v)*p0 + u*p1 + v*p2 with p0, p1, p2 the vertices of faces[prim]."""
+
+    t: object
+    prim: object
+    u: object
+    v: object
+    stats: TraceStats
+
+
+@dataclass
+class BVHStats:
+    triangles: int
+    nodes: int
+    leaves: int
+    treelets: int
+    depth: int
+    treelet_height: int
+    leaf_size: int
+    treelet_node_counts: list
+    bytes: dict
+    build_s: float
+    layout_s: float
+
+    @property
+    def total_bytes(self) -> int:
+        return sum(self.bytes.values())
+
+
+class LayerBVH:
+    """A binned-SAH BVH over triangles, laid out as a Layer BVH (see layout.LayerLayout)."""
+
+    def __init__(self, vertices, faces, treelet_height=4, leaf_size=4, backend=None):
+        treelet_height = check_param("treelet_height", treelet_height, 1, 64)
+        leaf_size = check_param("leaf_size", leaf_size, 1, 64)
+        v, f = check_mesh(vertices, faces)
+        self.vertices, self.faces = v, f
+        self.backend = backend or be.default_backend()
+        self.m = be.module(self.backend)
+        t0 = time.perf_counter()
+        tri = v[f] if len(f) else np.zeros((0, 3, 3), np.float32)
+        self.binary: BinaryBVH | None = build_binned_sah(tri.min(1), tri.max(1), leaf_size) if len(f) else None
+        t1 = time.perf_counter()
+        self.layout: LayerLayout | None = to_layer_layout(self.binary, v, f, treelet_height) if len(f) else None
+        t2 = time.perf_counter()
+        lay = self.layout
+        m = self.m
+        self.device = None if lay is None else DeviceLayout(
+            nodes=m.Float(lay.nodes), leaves=m.UInt32(lay.leaves), tris=m.Float(lay.tris),
+            treelet_first=m.UInt32(lay.treelet_first), node_treelet=m.UInt32(lay.node_treelet),
+            leaf_treelet=m.UInt32(lay.leaf_treelet), depth=lay.depth, height=lay.height,
+            treelet_count=lay.treelet_count)
+        self.stats = BVHStats(
+            triangles=len(f), nodes=lay.node_count if lay else 0, leaves=lay.leaf_count if lay else 0,
+            treelets=lay.treelet_count if lay else 0, depth=lay.depth if lay else 0,
+            treelet_height=treelet_height, leaf_size=leaf_size,
+            treelet_node_counts=lay.treelet_node_counts.tolist() if lay else [],
+            bytes=lay.array_bytes() if lay else {}, build_s=t1 - t0, layout_s=t2 - t1)
+
+    def check(self) -> None:
+        """Raise AssertionError if a layout invariant is broken (see layout.check_layout)."""
+        if self.layout is not None:
+            check_layout(self.layout, len(self.faces))
+
+    # -- tracing ---------------------------------------------------------------------------------
+    def _rays(self, origins, directions, tmax):
+        """Rays as (o, d, tmax, valid) Dr.Jit arrays, and a function turning results back into the input's kind."""
+        m = self.m
+        kind = be.backend_of(origins)
+        if kind is None:
+            o = np.asarray(origins, np.float32)
+            d = np.asarray(directions, np.float32)
+            if o.ndim != 2 or o.shape[1] != 3:
+                raise ValueError(f"origins must have shape (N, 3), got {o.shape}")
+            if d.shape != o.shape:
+                raise ValueError(f"directions must have shape {o.shape} like origins, got {d.shape}")
+            n = len(o)
+            oj = [m.Float(np.ascontiguousarray(o[:, c])) for c in range(3)]
+            dj = [m.Float(np.ascontiguousarray(d[:, c])) for c in range(3)]
+
+            def back(x):
+                return x.numpy()
+        else:
+            if kind != self.backend:
+                raise ValueError(f"rays are on the {kind} backend, this BVH on {self.backend}")
+            oj = [m.Float(origins[c]) for c in range(3)]
+            dj = [m.Float(directions[c]) for c in range(3)]
+            n = dr.width(oj[0])
+
+            def back(x):
+                return x
+        if tmax is None:
+            tm = dr.full(m.Float, dr.inf, n)
+        elif be.backend_of(tmax) is not None:
+            tm = m.Float(tmax)
+        else:
+            tv = np.asarray(tmax, np.float32)
+            if tv.ndim == 0:
+                tm = dr.full(m.Float, float(tv), n)
+            elif tv.shape == (n,):
+                tm = m.Float(tv)
+            else:
+                raise ValueError(f"tmax must be a scalar or shape ({n},), got {tv.shape}")
+        finite = dr.isfinite(oj[0]) & dr.isfinite(oj[1]) & dr.isfinite(oj[2])
+        finite &= dr.isfinite(dj[0]) & dr.isfinite(dj[1]) & dr.isfinite(dj[2])
+        nonzero = (dj[0] != 0) | (dj[1] != 0) | (dj[2] != 0)
+        valid = finite & nonzero & ~dr.isnan(tm) & (tm > 0)
+        return oj, dj, tm, valid, n, back
+
+    def _run(self, origins, directions, tmax, mode, any_hit):
+        if mode not in MODES:
+            raise ValueError(f"mode must be one of {', '.join(MODES)}; got {mode!r}")
+        oj, dj, tm, valid, n, back = self._rays(origins, directions, tmax)
+        m = self.m
+        t0 = time.perf_counter()
+        if self.device is None or n == 0:
+            from .wavefront import Results
+            res, stats = Results(m, n), TraceStats(mode=mode, rays=n)
+        else:
+            res, stats = _trace(m, self.device, oj, dj, tm, valid, mode, any_hit)
+        stats.finish(*(int(dr.sum(w)[0]) if n else 0 for w in res.work))
+        stats.time_total_s = time.perf_counter() - t0
+        return res, stats, back
+
+    def trace(self, origins, directions, tmax=None, mode="layer_sorted") -> Hits:
+        res, stats, back = self._run(origins, directions, tmax, mode, any_hit=False)
+        m = self.m
+        hit = res.tri != NO_HIT
+        prim = dr.select(hit, dr.reinterpret_array(m.UInt32, dr.gather(m.Float, self.device.tris, res.tri * 12 + 9, hit))
+                         if self.device is not None else m.UInt32(MISS), m.UInt32(MISS))
+        t = dr.select(hit, res.t, dr.inf)
+        u = dr.select(hit, res.u, 0.0)
+        v = dr.select(hit, res.v, 0.0)
+        return Hits(t=back(t), prim=back(prim), u=back(u), v=back(v), stats=stats)
+
+    def occluded(self, origins, directions, tmax=None, mode="layer_sorted"):
+        """True for rays with any hit at 0 < t < tmax."""
+        res, stats, back = self._run(origins, directions, tmax, mode, any_hit=True)
+        self.last_occluded_stats = stats
+        return back(res.tri != NO_HIT)
+
+
+def build(vertices, faces, treelet_height: int = 4, leaf_size: int = 4, backend: str | None = None) -> LayerBVH:
+    """Build a Layer BVH over a triangle mesh: vertices (V, 3) float, faces (F, 3) int."""
+    return LayerBVH(vertices, faces, treelet_height=treelet_height, leaf_size=leaf_size, backend=backend)

@@ -1,0 +1,100 @@
+"""Ray set-up, the conservative two-child slab test and the watertight ray/triangle test (Dr.Jit)."""
+from __future__ import annotations
+
+import drjit as dr
+
+from .layout import NODE_FLOATS, TRI_FLOATS
+
+# Ize 2013: scaling a box's far distance by 1 + 2*gamma(3) makes the float slab test conservative.
+_GAMMA3 = 3 * 2.0 ** -24 / (1 - 3 * 2.0 ** -24)
+FAR_SCALE = 1.0 + 2.0 * _GAMMA3
+# Direction components below this are replaced by it (sign kept), so (lo - o) * inv_d is never
+# 0 * inf = NaN for a ray whose origin lies in a slab plane (Embree does the same).
+MIN_RCP_INPUT = 1e-18
+
+
+class Ray:
+    """Per-ray constants of one traversal: origin, reciprocal direction, Woop's shear."""
+
+    def __init__(self, m, o, d):
+        self.o = o
+        inv = []
+        for c in d:
+            c_safe = dr.select(dr.abs(c) < MIN_RCP_INPUT, dr.copysign(MIN_RCP_INPUT, c), c)
+            inv.append(dr.rcp(c_safe))
+        self.inv = inv
+        # Woop, Benthin, Wald 2013: kz is the dominant axis; kx, ky are swapped when d[kz] < 0
+        # to keep the winding (and so the sign of U, V, W) consistent.
+        ax, ay, az = dr.abs(d[0]), dr.abs(d[1]), dr.abs(d[2])
+        kz = dr.select((ax >= ay) & (ax >= az), m.UInt32(0), dr.select(ay >= az, m.UInt32(1), m.UInt32(2)))
+        kx = dr.select(kz == 2, m.UInt32(0), kz + 1)
+        ky = dr.select(kx == 2, m.UInt32(0), kx + 1)
+        dz = pick(d, kz)
+        flip = dz < 0
+        kx, ky = dr.select(flip, ky, kx), dr.select(flip, kx, ky)
+        self.kx, self.ky, self.kz = kx, ky, kz
+        self.sz = dr.rcp(dz)
+        self.sx = pick(d, kx) * self.sz
+        self.sy = pick(d, ky) * self.sz
+
+
+def pick(v, k):
+    return dr.select(k == 0, v[0], dr.select(k == 1, v[1], v[2]))
+
+
+def hit_children(m, nodes, node, ray: Ray, t_best, active):
+    """Slab-test both child boxes of `node`: (hit_left, hit_right, t_left, t_right, link_left, link_right).
+
+    A box counts as hit when its entry distance is <= t_best, so a box that could hold a triangle
+    at exactly t_best (a tie decided by primitive id) is never culled."""
+    rec = dr.gather(m.ArrayXf, nodes, node, active, shape=(NODE_FLOATS, dr.width(node)))
+    out = []
+    for side in (0, 1):
+        base = 6 * side
+        tn = m.Float(0.0)
+        tf = m.Float(dr.inf)
+        for c in range(3):
+            t0 = (rec[base + c] - ray.o[c]) * ray.inv[c]
+            t1 = (rec[base + 3 + c] - ray.o[c]) * ray.inv[c]
+            tn = dr.maximum(tn, dr.minimum(t0, t1))
+            tf = dr.minimum(tf, dr.maximum(t0, t1))
+        hit = active & (tn <= tf * FAR_SCALE) & (tn <= t_best)
+        out.append((hit, tn))
+    links = dr.reinterpret_array(m.UInt32, rec[12]), dr.reinterpret_array(m.UInt32, rec[13])
+    return out[0][0], out[1][0], out[0][1], out[1][1], links[0], links[1]
+
+
+def hit_triangle(m, tris, tri, ray: Ray, active):
+    """Watertight test against triangle `tri` (leaf order): (hit, t, u, v, original face id).
+
+    Hits are 0 < t; p = (1-u-v)*v0 + u*v1 + v*v2. Degenerate triangles (det = 0) never hit."""
+    rec = dr.gather(m.ArrayXf, tris, tri, active, shape=(TRI_FLOATS, dr.width(tri)))
+    A = [rec[c] - ray.o[c] for c in range(3)]
+    B = [rec[3 + c] - ray.o[c] for c in range(3)]
+    C = [rec[6 + c] - ray.o[c] for c in range(3)]
+    Az, Bz, Cz = pick(A, ray.kz), pick(B, ray.kz), pick(C, ray.kz)
+    Ax, Ay = pick(A, ray.kx) - ray.sx * Az, pick(A, ray.ky) - ray.sy * Az
+    Bx, By = pick(B, ray.kx) - ray.sx * Bz, pick(B, ray.ky) - ray.sy * Bz
+    Cx, Cy = pick(C, ray.kx) - ray.sx * Cz, pick(C, ray.ky) - ray.sy * Cz
+    U = Cx * By - Cy * Bx
+    V = Ax * Cy - Ay * Cx
+    W = Bx * Ay - By * Ax
+    # An edge function that rounds to exactly 0 is re-evaluated in double precision, which
+    # decides edge and vertex hits consistently between neighbouring triangles.
+    on_edge = (U == 0) | (V == 0) | (W == 0)
+    F64 = m.Float64
+
+    def edge64(px, py, qx, qy):
+        return m.Float(F64(px) * F64(qy) - F64(py) * F64(qx))
+
+    U = dr.select(on_edge, edge64(Cx, Cy, Bx, By), U)
+    V = dr.select(on_edge, edge64(Ax, Ay, Cx, Cy), V)
+    W = dr.select(on_edge, edge64(Bx, By, Ax, Ay), W)
+    outside = ((U < 0) | (V < 0) | (W < 0)) & ((U > 0) | (V > 0) | (W > 0))
+    det = U + V + W
+    T = U * (ray.sz * Az) + V * (ray.sz * Bz) + W * (ray.sz * Cz)
+    rcp = dr.rcp(det)
+    t = T * rcp
+    hit = active & ~outside & (det != 0) & (t > 0)
+    prim = dr.reinterpret_array(m.UInt32, rec[9])
+    return hit, t, V * rcp, W * rcp, prim

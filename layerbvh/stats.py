@@ -1,0 +1,58 @@
+"""Traversal and BVH statistics: what a trace did (steps, work per ray, time split, memory)."""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+
+@dataclass
+class TraceStats:
+    """Statistics of one trace/occluded call.
+
+    Work counts are totals over all rays; `*_per_ray` divide by the ray count. Leaf
+    intersection runs inline in the traversal kernel, so `time_leaf_s` and
+    `time_treelet_s` split the kernel time by the share of loop iterations spent on
+    triangles (an estimate, marked as such by `time_split_estimated`)."""
+
+    mode: str
+    rays: int
+    steps: int = 0
+    active_per_step: list = field(default_factory=list)
+    inner_nodes: int = 0
+    leaves: int = 0
+    triangles: int = 0
+    iterations: int = 0
+    time_sort_s: float = 0.0
+    time_traverse_s: float = 0.0
+    time_treelet_s: float = 0.0
+    time_leaf_s: float = 0.0
+    time_other_s: float = 0.0
+    time_split_estimated: bool = True
+    time_total_s: float = 0.0
+    work_bytes: int = 0
+
+    def finish(self, inner: int, leaves: int, tris: int, iters: int) -> None:
+        self.inner_nodes, self.leaves, self.triangles, self.iterations = inner, leaves, tris, iters
+        share = tris / iters if iters else 0.0
+        self.time_leaf_s = self.time_traverse_s * share
+        self.time_treelet_s = self.time_traverse_s - self.time_leaf_s
+
+    def per_ray(self, name: str) -> float:
+        return getattr(self, name) / self.rays if self.rays else 0.0
+
+    @property
+    def inner_nodes_per_ray(self) -> float:
+        return self.per_ray("inner_nodes")
+
+    @property
+    def leaves_per_ray(self) -> float:
+        return self.per_ray("leaves")
+
+    @property
+    def triangles_per_ray(self) -> float:
+        return self.per_ray("triangles")
+
+    def as_dict(self) -> dict:
+        d = asdict(self)
+        d.update(inner_nodes_per_ray=self.inner_nodes_per_ray, leaves_per_ray=self.leaves_per_ray,
+                 triangles_per_ray=self.triangles_per_ray)
+        return d

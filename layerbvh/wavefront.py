@@ -1,0 +1,122 @@
+"""Trace drivers: one kernel per batch (per_ray) and sorted/unsorted wavefront steps over treelets."""
+from __future__ import annotations
+
+import time
+
+import drjit as dr
+
+from .stats import TraceStats
+from .walk import NO_HIT, DeviceLayout, RayState, walk
+
+MODES = ("per_ray", "layer_sorted", "layer_unsorted")
+ENTRY_BYTES = 8  # one entry-stack slot: link (uint32) + entry distance (float32)
+
+
+def _initial_state(m, o, d, tmax, valid) -> RayState:
+    n = dr.width(o[0])
+    zero = dr.zeros(m.UInt32, n)
+    return RayState(ox=o[0], oy=o[1], oz=o[2], dx=d[0], dy=d[1], dz=d[2],
+                    t=m.Float(tmax), u=dr.zeros(m.Float, n), v=dr.zeros(m.Float, n),
+                    prim=dr.full(m.UInt32, 0xFFFFFFFF, n), tri=dr.full(m.UInt32, NO_HIT, n),
+                    link=zero, sp=zero, slot=dr.arange(m.UInt32, n), treelet=zero,
+                    n_inner=zero, n_leaf=zero, n_tri=zero, n_iter=zero)
+
+
+def _take(m, s: RayState, idx) -> RayState:
+    """The rays `idx` of `s`, physically copied so the next step reads them sequentially."""
+    return RayState(**{k: dr.gather(type(v), v, idx) for k, v in vars(s).items()})
+
+
+class Results:
+    """Per-ray outputs, written by ray slot as rays finish."""
+
+    def __init__(self, m, n):
+        self.t = dr.full(m.Float, dr.inf, n)
+        self.u = dr.zeros(m.Float, n)
+        self.v = dr.zeros(m.Float, n)
+        self.tri = dr.full(m.UInt32, NO_HIT, n)
+        self.work = [dr.zeros(m.UInt32, n) for _ in range(4)]  # inner, leaf, tri, iterations
+
+    def write(self, s: RayState, mask):
+        for dst, src in ((self.t, s.t), (self.u, s.u), (self.v, s.v), (self.tri, s.tri)):
+            dr.scatter(dst, src, s.slot, mask)
+        for dst, src in zip(self.work, (s.n_inner, s.n_leaf, s.n_tri, s.n_iter)):
+            dr.scatter(dst, src, s.slot, mask)
+
+
+def _sync():
+    dr.sync_thread()
+    return time.perf_counter()
+
+
+def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool):
+    """Closest hit (or any hit) of every ray; returns (Results, TraceStats)."""
+    n = dr.width(o[0])
+    stats = TraceStats(mode=mode, rays=n)
+    res = Results(m, n)
+    s = _initial_state(m, o, d, tmax, valid)
+    # Invalid rays (NaN/Inf/zero direction) are misses and never enter a kernel.
+    idx = dr.compress(valid)
+    s = _take(m, s, idx)
+    t0 = _sync()
+    if mode == "per_ray":
+        cap = max(lay.depth, 1)
+        out, done, _, _ = walk(m, lay, s, None, cap, False, any_hit)
+        res.write(out, done)
+        dr.eval(res.t, res.u, res.v, res.tri, res.work)
+        t1 = _sync()
+        stats.steps = 1
+        stats.active_per_step = [dr.width(s.t)]
+        stats.time_traverse_s = t1 - t0
+        stats.work_bytes = n * 4 * 10  # ray in/out arrays
+        return res, stats
+
+    if mode not in ("layer_sorted", "layer_unsorted"):
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    sort = mode == "layer_sorted"
+    cap_local = max(1, min(lay.height, lay.depth))
+    cap_global = max(1, lay.depth)
+    st_link = dr.zeros(m.UInt32, n * cap_global)
+    st_t = dr.zeros(m.Float, n * cap_global)
+    finished = lay.treelet_count  # bucket after every treelet: finished rays sort last
+    buckets = 1 << max(1, (finished).bit_length())
+    state_bytes = 19 * 4
+    peak = 0
+    n_active = dr.width(s.t)
+    while n_active > 0:
+        stats.active_per_step.append(n_active)
+        ta = _sync()
+        out, done, nl, local = walk(m, lay, s, (st_link, st_t, cap_global), cap_local, True, any_hit)
+        dr.eval(out, done, nl, local)
+        tb = _sync()
+        # Write back the entries pushed in this step above the ray's global stack.
+        for k, (lk, lt) in enumerate(local):
+            mask = m.UInt32(k) < nl
+            pos = out.slot * cap_global + out.sp + k
+            dr.scatter(st_link, lk, pos, mask)
+            dr.scatter(st_t, lt, pos, mask)
+        out.sp = out.sp + nl
+        res.write(out, done)
+        dr.eval(st_link, st_t, out.sp, res.t, res.u, res.v, res.tri, res.work)
+        tc = _sync()
+        keys = dr.select(done, m.UInt32(finished), out.treelet)
+        dr.eval(keys)
+        n_active = n_active - int(dr.count(done)[0])
+        if sort:
+            perm = dr.detail.block_mkperm(keys, dr.width(keys), buckets) if buckets <= (1 << 16) \
+                else dr.argsort(keys)
+            perm = dr.gather(m.UInt32, perm, dr.arange(m.UInt32, n_active))
+        else:
+            perm = dr.compress(~done)
+        dr.eval(perm)
+        td = _sync()
+        s = _take(m, out, perm)
+        dr.eval(s)
+        te = _sync()
+        peak = max(peak, dr.width(keys) * (2 * state_bytes + cap_local * ENTRY_BYTES + 8))
+        stats.steps += 1
+        stats.time_traverse_s += tb - ta
+        stats.time_other_s += (tc - tb) + (te - td)
+        stats.time_sort_s += td - tc
+    stats.work_bytes = peak + n * cap_global * ENTRY_BYTES + n * 4 * 10
+    return res, stats
