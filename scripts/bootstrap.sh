@@ -1,0 +1,47 @@
+#!/usr/bin/env bash
+# Makes a fresh Debian machine ready: Python 3.11, Debian's libllvm19 (Dr.Jit's LLVM backend),
+# and a virtualenv in .venv with the project installed. Safe to run again: it skips what is done.
+set -euo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$root"
+
+say() { printf 'bootstrap: %s\n' "$*" >&2; }
+
+python=""
+for cand in python3.11 python3; do
+  if command -v "$cand" >/dev/null 2>&1 && "$cand" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))'; then
+    python="$(command -v "$cand")"; break
+  fi
+done
+if [ -z "$python" ]; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    say "installing python3.11 (Debian packages python3.11 python3.11-venv)"
+    apt-get update -qq && apt-get install -y -qq python3.11 python3.11-venv >/dev/null
+    python="$(command -v python3.11)"
+  else
+    say "Python 3.11 is required. Install it, e.g.: sudo apt-get install python3.11 python3.11-venv"; exit 1
+  fi
+fi
+
+# Dr.Jit's LLVM backend loads a shared libLLVM; Debian's 14 and 15 crash at the first kernel.
+if ! ldconfig -p 2>/dev/null | grep -q 'libLLVM.so.19\|libLLVM-19'; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    say "installing Debian package libllvm19 (needed by Dr.Jit's LLVM backend)"
+    apt-get update -qq && apt-get install -y -qq libllvm19 >/dev/null
+  else
+    say "Debian package libllvm19 is missing (Dr.Jit's LLVM backend needs it; libllvm14/15 crash)."
+    say "Install it as root: sudo apt-get install -y libllvm19"; exit 1
+  fi
+fi
+
+stamp=".venv/.layerbvh-installed"
+want="$(sha256sum pyproject.toml | cut -d' ' -f1)"
+if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
+  if [ ! -x .venv/bin/python ]; then
+    say "creating virtualenv .venv"
+    "$python" -m venv .venv || { say "python3.11 -m venv failed: install python3.11-venv"; exit 1; }
+  fi
+  say "installing the project and its pinned dependencies into .venv"
+  .venv/bin/python -m pip install -q --disable-pip-version-check -e '.[test]'
+  echo "$want" > "$stamp"
+fi
