@@ -28,7 +28,7 @@ def scene_from_mesh(vertices: np.ndarray, faces: np.ndarray, robust: bool = Fals
     return mi.load_dict(props)
 
 
-def _ray(o: np.ndarray, d: np.ndarray, tmax=None):
+def rays(o: np.ndarray, d: np.ndarray, tmax=None):
     ray = mi.Ray3f(mi.Point3f(*(mi.Float(np.ascontiguousarray(o[:, c], np.float32)) for c in range(3))),
                    mi.Vector3f(*(mi.Float(np.ascontiguousarray(d[:, c], np.float32)) for c in range(3))))
     if tmax is not None:
@@ -38,7 +38,7 @@ def _ray(o: np.ndarray, d: np.ndarray, tmax=None):
 
 def intersect(scene, o: np.ndarray, d: np.ndarray, tmax=None):
     """Embree closest hits as numpy: (t with inf for misses, prim with 0xFFFFFFFF for misses)."""
-    pi = scene.ray_intersect_preliminary(_ray(o, d, tmax))
+    pi = scene.ray_intersect_preliminary(rays(o, d, tmax))
     valid = pi.is_valid()
     t = dr.select(valid, pi.t, dr.inf)
     prim = dr.select(valid, pi.prim_index, mi.UInt32(0xFFFFFFFF))
@@ -47,16 +47,5 @@ def intersect(scene, o: np.ndarray, d: np.ndarray, tmax=None):
 
 
 def occluded(scene, o: np.ndarray, d: np.ndarray, tmax) -> np.ndarray:
-    return scene.ray_test(_ray(o, d, tmax)).numpy()
+    return scene.ray_test(rays(o, d, tmax)).numpy()
 
-
-def timed_intersect(scene, o: np.ndarray, d: np.ndarray):
-    """Embree closest-hit query on rays already on the device, for benchmarks: a callable."""
-    ray = _ray(o, d)
-    dr.eval(ray)
-
-    def run():
-        pi = scene.ray_intersect_preliminary(ray)
-        dr.eval(pi.t, pi.prim_index)
-        dr.sync_thread()
-    return run

@@ -1,0 +1,323 @@
+"""Traversal benchmark: Mrays/s, work per ray, build time and memory of every layerbvh mode against Embree."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import shlex
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
+
+import layerbvh  # noqa: E402
+from layerbvh_mitsuba import embree  # noqa: E402
+from scripts import meshes  # noqa: E402
+
+DEFAULT_MESH = ROOT / "scenes" / "meshes" / "bunny.ply"
+RAY_KINDS = ("coherent", "incoherent")
+LAYER_MODES = ("layer_sorted", "layer_unsorted")
+MIB = 1 << 20
+
+
+@dataclass
+class Config:
+    """One timed configuration: `run()` traces every ray once and returns (seconds, prim, stats)."""
+
+    mode: str
+    height: int | None
+    run: Callable
+    build_s: float | None = None
+    bvh_bytes: int | None = None
+    times: list = field(default_factory=list)
+    prim: np.ndarray | None = None
+    stats: object = None
+
+    @property
+    def label(self) -> str:
+        return self.mode if self.height is None else f"{self.mode} h={self.height}"
+
+
+# -- setup ------------------------------------------------------------------------------------------
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--mesh", action="append", default=None,
+                   help="PLY/OBJ mesh to bench (repeatable, or a comma list); default: scenes/meshes/bunny.ply")
+    p.add_argument("--rays", type=int, default=1_000_000, help="rays per batch (default 1,000,000)")
+    p.add_argument("--procedural-tris", type=int, default=600_000,
+                   help="triangles of the procedural sphere soup (default 600,000; 0 skips it)")
+    p.add_argument("--heights", default="3,4,6,8", help="treelet heights, comma list (default 3,4,6,8)")
+    p.add_argument("--runs", type=int, default=5, help="timed runs per configuration after one warm-up (default 5)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the procedural mesh and the rays")
+    p.add_argument("--backend", choices=("llvm", "cuda"), default="llvm",
+                   help="layerbvh backend (default llvm: the same CPU threads Embree runs on)")
+    p.add_argument("--json", metavar="OUT", help="write every figure to this JSON file")
+    args = p.parse_args(argv)
+    try:
+        args.heights = [int(h) for h in args.heights.split(",") if h.strip()]
+    except ValueError:
+        p.error(f"--heights must be a comma list of integers, got {args.heights!r}")
+    if not args.heights:
+        p.error("--heights is empty")
+    if args.rays < 1 or args.runs < 1 or args.procedural_tris < 0:
+        p.error("--rays and --runs must be >= 1, --procedural-tris >= 0")
+    args.mesh = [m.strip() for arg in args.mesh for m in arg.split(",") if m.strip()] if args.mesh else None
+    return args
+
+
+def mesh_inputs(args) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(name, vertices, faces) of every mesh to bench, all loaded up front so a bad file fails at once."""
+    out = []
+    if args.procedural_tris:
+        v, f = meshes.procedural_mesh(args.procedural_tris, seed=args.seed)
+        out.append((f"procedural_{args.procedural_tris // 1000}k", v, f))
+    paths = args.mesh
+    if paths is None:
+        if DEFAULT_MESH.exists():
+            paths = [str(DEFAULT_MESH)]
+        else:
+            print(f"(skipping the bunny: {DEFAULT_MESH.relative_to(ROOT)} not found; pass --mesh PATH)")
+            paths = []
+    for path in paths:
+        v, f = meshes.load_mesh(path)
+        out.append((Path(path).stem, v, f))
+    return out
+
+
+def embree_scene(v: np.ndarray, f: np.ndarray):
+    """A Mitsuba scene holding exactly these triangles (face i = prim i), and its build seconds."""
+    t0 = time.perf_counter()
+    scene = embree.scene_from_mesh(v, f)
+    return scene, time.perf_counter() - t0
+
+
+# -- timed configurations ---------------------------------------------------------------------------
+
+
+def _timed(fn):
+    dr.sync_thread()  # nothing queued from before may be billed to this run
+    t0 = time.perf_counter()
+    out = fn()
+    dr.sync_thread()
+    return time.perf_counter() - t0, out
+
+
+def embree_config(scene, o: np.ndarray, d: np.ndarray, build_s: float) -> Config:
+    ray = embree.rays(o, d)
+    dr.eval(ray)
+
+    def trace():
+        pi = scene.ray_intersect_preliminary(ray)
+        dr.eval(pi.t, pi.prim_index, pi.prim_uv, pi.shape)
+        return pi
+
+    def run():
+        secs, pi = _timed(trace)
+        return secs, lambda: dr.select(pi.is_valid(), pi.prim_index, mi.UInt32(layerbvh.MISS)).numpy(), None
+    return Config("embree", None, run, build_s=build_s)
+
+
+def layer_config(bvh, mode: str, height: int, o_dev, d_dev) -> Config:
+    def trace():
+        h = bvh.trace(o_dev, d_dev, mode=mode)
+        dr.eval(h.t, h.prim, h.u, h.v)
+        return h
+
+    def run():
+        secs, h = _timed(trace)
+        return secs, h.prim.numpy, h.stats
+    s = bvh.stats
+    return Config(mode, height, run, build_s=s.build_s + s.layout_s, bvh_bytes=s.total_bytes)
+
+
+def make_configs(scene, embree_build_s, bvhs: dict, o, d, backend: str) -> list[Config]:
+    # Rays go to the device once, outside the timing, for Embree and layerbvh alike.
+    m = getattr(dr, backend)
+    o_dev = m.Array3f(*(m.Float(np.ascontiguousarray(o[:, c])) for c in range(3)))
+    d_dev = m.Array3f(*(m.Float(np.ascontiguousarray(d[:, c])) for c in range(3)))
+    dr.eval(o_dev, d_dev)
+    first = next(iter(bvhs))
+    configs = [embree_config(scene, o, d, embree_build_s),
+               layer_config(bvhs[first], "per_ray", first, o_dev, d_dev)]
+    for h, bvh in bvhs.items():
+        configs += [layer_config(bvh, mode, h, o_dev, d_dev) for mode in LAYER_MODES]
+    return configs
+
+
+def measure(configs: list[Config], runs: int) -> None:
+    """One warm-up (JIT compilation, hits and work counts), then `runs` rounds of every config.
+
+    Each round runs every configuration once, starting one further along each time, so slow
+    drifts and bursts of noise on a shared machine land on all configurations alike."""
+    for c in configs:
+        _, prim, c.stats = c.run()
+        c.prim = prim()
+    for r in range(runs):
+        k = r % len(configs)
+        for c in configs[k:] + configs[:k]:
+            secs, _, _ = c.run()
+            c.times.append(secs)
+
+
+# -- figures ----------------------------------------------------------------------------------------
+
+
+def prim_mismatches(configs: list[Config]) -> dict:
+    """Per config label: how many rays' prim differs from per_ray's."""
+    ref = next(c for c in configs if c.mode == "per_ray")
+    return {c.label: int((c.prim != ref.prim).sum()) for c in configs}
+
+
+def print_agreement(diff: dict, n: int) -> None:
+    for label, k in diff.items():
+        if k and label != "embree":  # layer modes walk the same tree in the same order: must agree exactly
+            print(f"WARNING: {label} returns a different prim than per_ray on {k:,} of {n:,} rays")
+    if diff["embree"]:
+        # Embree may pick the other triangle of a shared edge, so this is a note, not a failure.
+        print(f"note: Embree's prim differs from per_ray on {diff['embree']:,} of {n:,} rays "
+              f"({1e6 * diff['embree'] / n:.1f} ppm)")
+    if not any(k for label, k in diff.items() if label != "embree"):
+        print("all layerbvh modes and heights return the same prim for every ray")
+
+
+def result_rows(mesh: str, tris: int, kind: str, configs: list[Config], n: int, diff: dict) -> list[dict]:
+    mrays = {c.label: [n / t / 1e6 for t in c.times] for c in configs}
+    med = {k: float(np.median(v)) for k, v in mrays.items()}
+    per_ray = next(med[c.label] for c in configs if c.mode == "per_ray")
+    rows = []
+    for c in configs:
+        s = c.stats
+        rows.append({
+            "mesh": mesh, "triangles": tris, "rays": kind, "mode": c.mode, "treelet_height": c.height,
+            "mrays_s": med[c.label], "runs": mrays[c.label], "build_s": c.build_s,
+            "bvh_bytes": c.bvh_bytes, "work_bytes": s.work_bytes if s else None,
+            "ratio_per_ray": med[c.label] / per_ray, "ratio_embree": med[c.label] / med["embree"],
+            "inner_per_ray": s.inner_nodes_per_ray if s else None,
+            "leaves_per_ray": s.leaves_per_ray if s else None,
+            "tris_per_ray": s.triangles_per_ray if s else None,
+            "steps": s.steps if s else None,
+            "ray_count": n, "hit_fraction": float(np.mean(c.prim != layerbvh.MISS)),
+            "prim_mismatch_vs_per_ray": diff[c.label],
+        })
+    return rows
+
+
+def _fmt(x, spec):
+    return "–" if x is None else format(x, spec)
+
+
+def print_table(rows: list[dict]) -> None:
+    r0 = next(r for r in rows if r["mode"] == "per_ray")
+    print(f"\n## {r0['mesh']} ({r0['triangles']:,} triangles), {r0['rays']} rays "
+          f"({r0['ray_count']:,}, {100 * r0['hit_fraction']:.1f}% hit per per_ray)\n")
+    print("| mode | h | Mrays/s | runs min–max | × per_ray | × Embree | inner/ray | leaves/ray | tris/ray "
+          "| steps | build s | build Mtris/s | BVH MiB | work MiB |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        build_rate = r["triangles"] / r["build_s"] / 1e6 if r["build_s"] else None
+        print(f"| {r['mode']} | {_fmt(r['treelet_height'], 'd')} | {r['mrays_s']:.2f} "
+              f"| {min(r['runs']):.2f}–{max(r['runs']):.2f} | {r['ratio_per_ray']:.2f} | {r['ratio_embree']:.2f} "
+              f"| {_fmt(r['inner_per_ray'], '.1f')} | {_fmt(r['leaves_per_ray'], '.2f')} "
+              f"| {_fmt(r['tris_per_ray'], '.1f')} | {_fmt(r['steps'], 'd')} | {_fmt(r['build_s'], '.2f')} "
+              f"| {_fmt(build_rate, '.2f')} | {_fmt(r['bvh_bytes'] and r['bvh_bytes'] / MIB, '.1f')} "
+              f"| {_fmt(r['work_bytes'] and r['work_bytes'] / MIB, '.1f')} |")
+
+
+# -- run --------------------------------------------------------------------------------------------
+
+
+def machine_info(backend: str) -> dict:
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as fh:
+            model = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), model)
+    except OSError:
+        pass
+    return {"cpu": model, "cores": os.cpu_count(), "os": platform.platform(),
+            "drjit_threads": dr.thread_count(), "layerbvh_backend": backend, "embree": "mitsuba llvm_ad_rgb"}
+
+
+def versions() -> dict:
+    return {"python": platform.python_version(), "drjit": dr.__version__, "mitsuba": mi.__version__,
+            "numpy": np.__version__, "layerbvh": layerbvh.__version__}
+
+
+def write_json(path: str, doc: dict) -> None:
+    """Write atomically: readers never see a half-written file, even if the run dies mid-way."""
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(doc, fh, indent=1)
+            fh.flush()
+            os.fsync(fh.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; the result should be as readable as any output
+        os.replace(tmp, out)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def bench_mesh(name: str, v, f, args) -> list[dict]:
+    scene, embree_build_s = embree_scene(v, f)
+    bvhs = {h: layerbvh.build(v, f, treelet_height=h, backend=args.backend) for h in args.heights}
+    rows = []
+    for kind in RAY_KINDS:
+        gen = meshes.camera_rays if kind == "coherent" else meshes.incoherent_rays
+        o, d = gen(v, args.rays, seed=args.seed + (1 if kind == "coherent" else 2))
+        configs = make_configs(scene, embree_build_s, bvhs, o, d, args.backend)
+        measure(configs, args.runs)
+        diff = prim_mismatches(configs)
+        kind_rows = result_rows(name, len(f), kind, configs, args.rays, diff)
+        print_table(kind_rows)
+        print()
+        print_agreement(diff, args.rays)
+        sys.stdout.flush()
+        rows += kind_rows
+    return rows
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    mi.set_variant("llvm_ad_rgb")
+    command = shlex.join(getattr(sys, "orig_argv", [sys.executable] + sys.argv))
+    machine = machine_info(args.backend)
+    print(f"# Traversal benchmark\n\n`{command}`\n")
+    print(f"{machine['cpu']}, {machine['cores']} cores, {machine['os']}; "
+          + ", ".join(f"{k} {v}" for k, v in versions().items()))
+    print(f"median of {args.runs} runs after one warm-up; Embree = Mitsuba {mi.variant()} "
+          f"ray_intersect_preliminary; layerbvh backend {args.backend}; per_ray runs on the h={args.heights[0]} layout")
+    try:
+        inputs = mesh_inputs(args)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    doc = {"machine": machine, "versions": versions(), "command": command, "results": []}
+    for name, v, f in inputs:
+        doc["results"] += bench_mesh(name, v, f, args)
+        if args.json:  # after each mesh, so an interrupted run still leaves its figures
+            write_json(args.json, doc)
+    if args.json:
+        print(f"\nwrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
