@@ -13,7 +13,7 @@ from .sah import BinaryBVH, build_binned_sah
 from .stats import TraceStats
 from .validate import check_mesh, check_param
 from .walk import NO_HIT, DeviceLayout
-from .wavefront import MODES, trace as _trace
+from .wavefront import MODES, Results, trace as _trace
 
 MISS = 0xFFFFFFFF
 
@@ -136,7 +136,6 @@ class LayerBVH:
         m = self.m
         t0 = time.perf_counter()
         if self.device is None or n == 0:
-            from .wavefront import Results
             res, stats = Results(m, n), TraceStats(mode=mode, rays=n)
         else:
             res, stats = _trace(m, self.device, oj, dj, tm, valid, mode, any_hit)
@@ -148,8 +147,11 @@ class LayerBVH:
         res, stats, back = self._run(origins, directions, tmax, mode, any_hit=False)
         m = self.m
         hit = res.tri != NO_HIT
-        prim = dr.select(hit, dr.reinterpret_array(m.UInt32, dr.gather(m.Float, self.device.tris, res.tri * 12 + 9, hit))
-                         if self.device is not None else m.UInt32(MISS), m.UInt32(MISS))
+        prim = dr.full(m.UInt32, MISS, dr.width(hit))
+        if self.device is not None:
+            # Hits hold the leaf-order triangle; its record carries the original face index.
+            face = dr.reinterpret_array(m.UInt32, dr.gather(m.Float, self.device.tris, res.tri * 12 + 9, hit))
+            prim = dr.select(hit, face, prim)
         t = dr.select(hit, res.t, dr.inf)
         u = dr.select(hit, res.u, 0.0)
         v = dr.select(hit, res.v, 0.0)

@@ -12,7 +12,7 @@ MODES = ("per_ray", "layer_sorted", "layer_unsorted")
 ENTRY_BYTES = 8  # one entry-stack slot: link (uint32) + entry distance (float32)
 
 
-def _initial_state(m, o, d, tmax, valid) -> RayState:
+def _initial_state(m, o, d, tmax) -> RayState:
     n = dr.width(o[0])
     zero = dr.zeros(m.UInt32, n)
     return RayState(ox=o[0], oy=o[1], oz=o[2], dx=d[0], dy=d[1], dz=d[2],
@@ -54,7 +54,7 @@ def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool):
     n = dr.width(o[0])
     stats = TraceStats(mode=mode, rays=n)
     res = Results(m, n)
-    s = _initial_state(m, o, d, tmax, valid)
+    s = _initial_state(m, o, d, tmax)
     # Invalid rays (NaN/Inf/zero direction) are misses and never enter a kernel.
     idx = dr.compress(valid)
     s = _take(m, s, idx)
