@@ -1,0 +1,143 @@
+"""Scene adapter: a Mitsuba scene's mesh triangles in world space, its analytic shapes, and the map from our hits back to Mitsuba shapes."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+import layerbvh
+
+# Shapes traced by Mitsuba's own per-shape routine and merged with the BVH's closest hit.
+ANALYTIC = ("Sphere", "Disk", "Cylinder")
+
+
+class UnsupportedShapeError(ValueError):
+    """A scene holds a shape type this backend cannot trace (never traced wrongly: refused)."""
+
+
+@dataclass
+class SceneGeometry:
+    """Everything the traversal needs from a scene, gathered once.
+
+    vertices/faces  all mesh triangles in world space, one global index space
+    tri_shape       uint32 (F,): index into scene.shapes() of each global triangle
+    tri_local       uint32 (F,): the triangle's index inside its own mesh
+    analytic        [(shape index, shape)] for spheres, disks and cylinders
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    tri_shape: np.ndarray
+    tri_local: np.ndarray
+    analytic: list = field(default_factory=list)
+    shape_names: list = field(default_factory=list)
+
+    @property
+    def triangle_count(self) -> int:
+        return len(self.faces)
+
+
+def describe(shape) -> str:
+    return f"{shape.class_name()} '{shape.id()}'"
+
+
+def collect_geometry(scene) -> SceneGeometry:
+    """World-space triangles of every mesh shape plus the analytic shapes; refuse anything else."""
+    verts, faces, tri_shape, tri_local, analytic, names = [], [], [], [], [], []
+    offset = 0
+    for i, shape in enumerate(scene.shapes()):
+        names.append(describe(shape))
+        if shape.is_mesh():
+            v = np.array(shape.vertex_positions_buffer(), np.float32).reshape(-1, 3)
+            f = np.array(shape.faces_buffer(), np.int64).reshape(-1, 3)
+            bad = ~np.isfinite(v).all(axis=1)
+            if bad.any():
+                raise ValueError(f"shape {describe(shape)}: vertex {int(np.argmax(bad))} is not finite "
+                                 f"({int(bad.sum())} non-finite vertices)")
+            verts.append(v)
+            faces.append(f + offset)
+            tri_shape.append(np.full(len(f), i, np.uint32))
+            tri_local.append(np.arange(len(f), dtype=np.uint32))
+            offset += len(v)
+        elif shape.class_name() in ANALYTIC:
+            analytic.append((i, shape))
+        else:
+            raise UnsupportedShapeError(
+                f"shape {describe(shape)} (plugin type '{shape.class_name().lower()}') is not supported by the "
+                f"layerbvh backend: it traces triangle meshes (incl. rectangle, cube, ply, obj, serialized) "
+                f"and {', '.join(a.lower() for a in ANALYTIC)}; instances/shapegroups, curves, SDF grids and "
+                f"ellipsoids are refused rather than traced wrongly")
+    cat = (lambda xs, shape, dt: np.concatenate(xs) if xs else np.zeros(shape, dt))
+    return SceneGeometry(vertices=cat(verts, (0, 3), np.float32), faces=cat(faces, (0, 3), np.int64),
+                         tri_shape=cat(tri_shape, (0,), np.uint32), tri_local=cat(tri_local, (0,), np.uint32),
+                         analytic=analytic, shape_names=names)
+
+
+class SceneTracer:
+    """Closest-hit and occlusion queries over a whole Mitsuba scene with the Layer BVH.
+
+    Built once per scene; every query returns Mitsuba types (PreliminaryIntersection3f, Bool)."""
+
+    def __init__(self, scene, traversal: str = "layer_sorted", treelet_height: int = 4, leaf_size: int = 4):
+        t0 = time.perf_counter()
+        self.scene = scene
+        self.geometry = collect_geometry(scene)
+        self.traversal = traversal
+        self.bvh = layerbvh.build(self.geometry.vertices, self.geometry.faces, treelet_height=treelet_height,
+                                  leaf_size=leaf_size, backend="cuda" if mi.variant().startswith("cuda") else "llvm")
+        self.tri_shape = mi.UInt32(self.geometry.tri_shape)
+        self.tri_local = mi.UInt32(self.geometry.tri_local)
+        self.build_s = time.perf_counter() - t0
+        self.trace_s = 0.0
+        self.trace_stats = []
+
+    def reset_counters(self):
+        self.trace_s = 0.0
+        self.trace_stats = []
+
+    def _query(self, fn, ray, active):
+        t0 = time.perf_counter()
+        o = dr.select(active, ray.o, mi.Point3f(dr.nan))  # inactive lanes become invalid rays: misses
+        out = fn(o, ray.d, ray.maxt)
+        dr.eval(out)
+        self.trace_s += time.perf_counter() - t0
+        return out
+
+    def intersect(self, ray: mi.Ray3f, active) -> mi.PreliminaryIntersection3f:
+        """Closest hit over meshes (our traversal) and analytic shapes (Mitsuba's per-shape test)."""
+        active = mi.Bool(active)
+        hits = self._query(lambda o, d, tmax: self.bvh.trace(o, d, tmax, mode=self.traversal), ray, active)
+        self.trace_stats.append(hits.stats)
+        hit = active & (mi.UInt32(hits.prim) != layerbvh.MISS)
+        pi = dr.zeros(mi.PreliminaryIntersection3f, dr.width(ray.o))
+        pi.t = dr.select(hit, mi.Float(hits.t), dr.inf)
+        pi.prim_uv = mi.Point2f(mi.Float(hits.u), mi.Float(hits.v))
+        gid = dr.select(hit, mi.UInt32(hits.prim), 0)
+        pi.prim_index = dr.gather(mi.UInt32, self.tri_local, gid, hit)
+        pi.shape_index = dr.gather(mi.UInt32, self.tri_shape, gid, hit)
+        for index, shape in self.geometry.analytic:
+            api = shape.ray_intersect_preliminary(ray, 0, active)
+            closer = active & api.is_valid() & (api.t < pi.t)
+            pi.t = dr.select(closer, api.t, pi.t)
+            pi.prim_uv = dr.select(closer, api.prim_uv, pi.prim_uv)
+            pi.prim_index = dr.select(closer, api.prim_index, pi.prim_index)
+            pi.shape_index = dr.select(closer, index, pi.shape_index)
+            hit |= closer
+        pi.shape = dr.gather(mi.ShapePtr, self.scene.shapes_dr(), pi.shape_index, hit)
+        pi.t = dr.select(hit, pi.t, dr.inf)
+        if hasattr(pi, "valid"):
+            pi.valid = hit
+        return pi
+
+    def occluded(self, ray: mi.Ray3f, active) -> mi.Bool:
+        """Any hit in (0, ray.maxt): our any-hit traversal, then the analytic shapes."""
+        active = mi.Bool(active)
+        occ = mi.Bool(self._query(lambda o, d, tmax: self.bvh.occluded(o, d, tmax, mode=self.traversal), ray, active))
+        self.trace_stats.append(self.bvh.last_occluded_stats)
+        occ &= active
+        for _, shape in self.geometry.analytic:
+            occ |= active & shape.ray_test(ray, active)
+        return occ

@@ -1,0 +1,147 @@
+"""Image metrics for the stock-vs-ours A/B comparison: error norms, ꟻLIP, ΔE2000 and the per-pixel Z-test."""
+from __future__ import annotations
+
+import functools
+import math
+import warnings
+
+import numpy as np
+
+# Tone-mapped values are compared as LDR, so anything brighter than white is one colour.
+_SRGB_LINEAR_CUTOFF = 0.0031308
+_REL_MSE_EPS = 1e-2
+_DIFF_THRESHOLD = 1e-3
+_EQUAL_MEANS_TOL = 1e-6
+
+
+def as_rgb(img, name: str = "image") -> np.ndarray:
+    """Return `img` as a finite float32 (H, W, 3) array: grey is repeated, channels past 3 are dropped."""
+    a = np.asarray(img)
+    if a.ndim == 2:
+        a = a[:, :, None]
+    if a.ndim != 3 or a.shape[2] in (0, 2):
+        raise ValueError(f"{name}: expected (H, W), (H, W, 1) or (H, W, >=3), got shape {np.shape(img)}")
+    a = np.repeat(a, 3, axis=2) if a.shape[2] == 1 else a[:, :, :3]
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    bad = int(np.count_nonzero(~np.isfinite(a).all(axis=2)))
+    if bad:
+        raise ValueError(f"{name} image has {bad} pixel(s) with NaN or Inf values")
+    return a
+
+
+def _pair(ref, test) -> tuple[np.ndarray, np.ndarray]:
+    r, t = as_rgb(ref, "ref"), as_rgb(test, "test")
+    if r.shape != t.shape:
+        raise ValueError(f"shape mismatch: ref {np.shape(ref)} vs test {np.shape(test)}")
+    return r, t
+
+
+def tonemap_srgb(img) -> np.ndarray:
+    """Clip linear RGB to [0, 1] and apply the piecewise sRGB OETF."""
+    x = np.clip(np.asarray(img, dtype=np.float32), 0.0, 1.0)
+    # np.where evaluates both branches; the power of the tiny-value branch is harmless.
+    return np.where(x <= _SRGB_LINEAR_CUTOFF, 12.92 * x,
+                    1.055 * np.power(x, 1.0 / 2.4) - 0.055).astype(np.float32)
+
+
+def _flip_on_srgb(ref_srgb: np.ndarray, test_srgb: np.ndarray) -> tuple[np.ndarray, float]:
+    import flip_evaluator as flip
+
+    # flip-evaluator 1.7: evaluate(ref, test, "LDR", inputsRGB=True, applyMagma=True, ...) returns
+    # (error map, mean, params). Without magma the map is (H, W, 1); LDR inputs are sRGB-encoded.
+    err, mean, _params = flip.evaluate(np.ascontiguousarray(ref_srgb), np.ascontiguousarray(test_srgb),
+                                       "LDR", inputsRGB=True, applyMagma=False, computeMeanError=True)
+    return np.asarray(err, dtype=np.float32).reshape(ref_srgb.shape[:2]), float(mean)
+
+
+def flip_error_map(ref, test) -> tuple[np.ndarray, float]:
+    """LDR ꟻLIP error map (H, W) in [0, 1] and its mean, on the tone-mapped sRGB images."""
+    r, t = _pair(ref, test)
+    return _flip_on_srgb(tonemap_srgb(r), tonemap_srgb(t))
+
+
+@functools.cache
+def _colour():
+    # colour-science warns on import when SciPy is missing; nothing used here needs SciPy.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        import colour
+    return colour
+
+
+def _srgb_to_lab(srgb: np.ndarray) -> np.ndarray:
+    colour = _colour()
+    d65 = colour.CCS_ILLUMINANTS["CIE 1931 2 Degree Standard Observer"]["D65"]
+    xyz = colour.sRGB_to_XYZ(srgb.astype(np.float64), apply_cctf_decoding=True)
+    return colour.XYZ_to_Lab(xyz, d65)
+
+
+def delta_e2000(ref_srgb: np.ndarray, test_srgb: np.ndarray) -> np.ndarray:
+    """Per-pixel CIEDE2000 between two sRGB-encoded images in [0, 1]."""
+    return np.asarray(_colour().delta_E(_srgb_to_lab(ref_srgb), _srgb_to_lab(test_srgb),
+                                        method="CIE 2000"))
+
+
+def _error_norms(r: np.ndarray, t: np.ndarray) -> dict:
+    r64, t64 = r.astype(np.float64), t.astype(np.float64)
+    d = t64 - r64
+    ad = np.abs(d)
+    return {
+        "rmse": float(np.sqrt(np.mean(d * d))),
+        "rel_mse": float(np.mean(d * d / (r64 * r64 + _REL_MSE_EPS))),
+        "max_abs": float(ad.max()),
+        "frac_pixels_over_1e-3": float(np.mean(ad.max(axis=2) > _DIFF_THRESHOLD)),
+        "mean_abs": float(ad.mean()),
+        "mean_ref": float(r64.mean()),
+        "pixels": int(r.shape[0] * r.shape[1]),
+    }
+
+
+def compare_images_with_flip_map(ref, test) -> tuple[dict, np.ndarray]:
+    """`compare_images` plus the ꟻLIP error map, so reports need not run ꟻLIP twice."""
+    r, t = _pair(ref, test)
+    rs, ts = tonemap_srgb(r), tonemap_srgb(t)
+    flip_map, flip_mean = _flip_on_srgb(rs, ts)
+    de = delta_e2000(rs, ts)
+    m = _error_norms(r, t)
+    m.update(flip_mean=flip_mean, delta_e2000_mean=float(de.mean()),
+             delta_e2000_p95=float(np.percentile(de, 95)))
+    keys = ("rmse", "rel_mse", "flip_mean", "delta_e2000_mean", "delta_e2000_p95", "max_abs",
+            "frac_pixels_over_1e-3", "mean_abs", "mean_ref", "pixels")
+    return {k: m[k] for k in keys}, flip_map
+
+
+def compare_images(ref, test) -> dict:
+    """Metrics of `test` against the reference `ref` (both linear RGB)."""
+    return compare_images_with_flip_map(ref, test)[0]
+
+
+_erfc = np.frompyfunc(math.erfc, 1, 1)  # no SciPy here; math.erfc keeps tiny p-values accurate
+
+
+def _two_sided_p(z: np.ndarray) -> np.ndarray:
+    return _erfc(np.abs(z) / math.sqrt(2.0)).astype(np.float64)
+
+
+def zscore_test(ref_mean, ref_var, test_mean, test_var, n_ref, n_test, alpha: float = 0.01) -> dict:
+    """Per-pixel two-sample Z-test with Šidák correction (the idea of mitsuba's RenderingRegressionTest).
+
+    `*_var` are per-sample variances; the variance of each mean is var / n.
+    """
+    a, va = as_rgb(ref_mean, "ref_mean"), as_rgb(ref_var, "ref_var")
+    b, vb = as_rgb(test_mean, "test_mean"), as_rgb(test_var, "test_var")
+    if not (a.shape == va.shape == b.shape == vb.shape):
+        raise ValueError(f"shape mismatch: ref_mean {a.shape}, ref_var {va.shape}, "
+                         f"test_mean {b.shape}, test_var {vb.shape}")
+    diff = a.astype(np.float64) - b
+    se2 = va.astype(np.float64) / np.asarray(n_ref, np.float64) + vb.astype(np.float64) / np.asarray(n_test, np.float64)
+    degenerate = se2 <= 0.0
+    z = np.divide(diff, np.sqrt(np.where(degenerate, 1.0, se2)))
+    p = _two_sided_p(z)
+    # With no noise at all the estimators are deterministic: equal means is the only pass.
+    p = np.where(degenerate, np.where(np.abs(diff) <= _EQUAL_MEANS_TOL, 1.0, 0.0), p)
+    pixels = a.shape[0] * a.shape[1]
+    threshold = -math.expm1(math.log1p(-alpha) / pixels)  # = 1 - (1-alpha)^(1/pixels), precisely
+    passed = (p > threshold).all(axis=2)
+    return {"pass_fraction": float(passed.mean()), "pixels": int(pixels),
+            "min_p": float(p.min()), "threshold": float(threshold)}
