@@ -58,6 +58,8 @@ def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool):
     # Invalid rays (NaN/Inf/zero direction) are misses and never enter a kernel.
     idx = dr.compress(valid)
     s = _take(m, s, idx)
+    if dr.width(idx) == 0:  # no valid ray: Dr.Jit kernels cannot run on empty arrays
+        return res, stats
     t0 = _sync()
     if mode == "per_ray":
         cap = max(lay.depth, 1)

@@ -142,6 +142,7 @@ def cmd_render(mi, args) -> int:
     scene = load_scene(mi, args.scene, args.res)
     spp = args.spp or scene_spp(scene)
     integ = _ours(mi, args, path_props(mi, scene))
+    integ.tracer(scene)  # build the BVH (and refuse unsupported shapes) before rendering
     img, secs = render_passes(mi, scene, integ, spp, args.seed, "layerbvh", not args.no_progress)
     if not np.isfinite(img).all():
         raise CliError(f"render produced {int((~np.isfinite(img)).any(-1).sum())} NaN/Inf pixels; nothing written")
@@ -158,9 +159,10 @@ def cmd_compare(mi, args) -> int:
     spp = args.spp or scene_spp(scene)
     props = path_props(mi, scene)
     stock = mi.load_dict({"type": "path", **props})
+    ours = _ours(mi, args, props)
+    ours.tracer(scene)  # build the BVH (and refuse unsupported shapes) before rendering anything
     progress = not args.no_progress
     stock_img, stock_s = render_passes(mi, scene, stock, spp, args.seed, "stock path", progress)
-    ours = _ours(mi, args, props)
     ours_img, ours_s = render_passes(mi, scene, ours, spp, args.seed, "layerbvh", progress)
     st = dict(ours.last_stats)
     info = {

@@ -191,3 +191,12 @@ def test_bad_ray_errors_and_invalid_rays_miss():
         h = bvh.trace(o, d, mode=mode)
         assert np.all(h.prim[1:] == layerbvh.MISS) and np.all(np.isinf(h.t[1:]))
         assert not bvh.occluded(o, d, 10.0, mode=mode)[1:].any()
+
+
+def test_all_rays_invalid_is_fine():
+    v, f = _soup(50)
+    bvh = layerbvh.build(v, f)
+    o = np.full((8, 3), np.nan, np.float32)
+    for mode in layerbvh.MODES:
+        assert np.all(bvh.trace(o, o, mode=mode).prim == layerbvh.MISS)
+        assert not bvh.occluded(o, o, 1.0, mode=mode).any()

@@ -1,0 +1,123 @@
+"""Reusable pytest helpers: check that the layerbvh integrator renders a scene like stock Mitsuba (same seed, and statistically)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+
+@dataclass
+class SameSeedResult:
+    frac_within: float      # share of pixels whose every channel differs by <= tol
+    mean_abs: float
+    mean_ref: float
+    max_abs: float
+    stock: np.ndarray
+    ours: np.ndarray
+
+    def summary(self) -> str:
+        return (f"{100 * self.frac_within:.3f}% of pixels within tolerance, mean |diff| {self.mean_abs:.3g} "
+                f"(mean pixel {self.mean_ref:.3g}), max |diff| {self.max_abs:.3g}")
+
+
+def _mi():
+    import mitsuba as mi
+    if mi.variant() is None:
+        mi.set_variant("llvm_ad_rgb")
+    import layerbvh_mitsuba  # noqa: F401  (registers the integrator)
+    return mi
+
+
+def load(scene_path, res=None, **params):
+    """Load an XML scene with optional $parameters and a film resolution override."""
+    mi = _mi()
+    from .cli import load_scene
+    if params:
+        scene = mi.load_file(str(scene_path), **params)
+        if res is not None:
+            p = mi.traverse(scene.sensors()[0])
+            p["film.size"], p["film.crop_size"], p["film.crop_offset"] = list(res), list(res), [0, 0]
+            p.update()
+        return scene
+    return load_scene(mi, scene_path, res)
+
+
+def render_pair(scene, spp: int, seed: int = 0, traversal: str = "per_ray", ours_scene=None, **ours_props):
+    """Stock `path` (with the scene's own settings) and `layerbvh` images of one scene, same seed."""
+    mi = _mi()
+    from .cli import path_props
+    props = path_props(mi, scene)
+    stock = mi.load_dict({"type": "path", **props})
+    ours = mi.load_dict({"type": "layerbvh", "traversal": traversal, **props, **ours_props})
+    a = np.array(mi.render(scene, integrator=stock, spp=spp, seed=seed), np.float32)
+    b = np.array(mi.render(ours_scene or scene, integrator=ours, spp=spp, seed=seed), np.float32)
+    return a, b
+
+
+def same_seed(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", tol=1e-3, **params) -> SameSeedResult:
+    scene = load(scene_path, res, **params)
+    a, b = render_pair(scene, spp, seed, traversal)
+    d = np.abs(a - b)
+    return SameSeedResult(frac_within=float(np.mean(d.max(-1) <= tol)), mean_abs=float(d.mean()),
+                          mean_ref=float(a.mean()), max_abs=float(d.max()), stock=a, ours=b)
+
+
+def assert_matches_stock(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", tol=1e-3,
+                         min_frac=0.999, max_mean_rel=1e-4, diff_dir=None, **params) -> SameSeedResult:
+    """Same seed: the layerbvh render must equal stock `path` to within `tol` in `min_frac` of the
+    pixels, with mean |diff| <= max_mean_rel * mean pixel value. On failure the message gives the
+    numbers and, with `diff_dir`, the stock/ours/diff images are saved there as EXR."""
+    r = same_seed(scene_path, spp, res, seed, traversal, tol, **params)
+    ok = r.frac_within >= min_frac and r.mean_abs <= max_mean_rel * r.mean_ref
+    if not ok:
+        where = ""
+        if diff_dir is not None:
+            mi = _mi()
+            out = Path(diff_dir)
+            out.mkdir(parents=True, exist_ok=True)
+            for name, img in (("stock", r.stock), ("ours", r.ours), ("diff", np.abs(r.stock - r.ours))):
+                mi.Bitmap(img).write(str(out / f"{Path(scene_path).stem}_{name}.exr"))
+            where = f"; images saved in {out}"
+        raise AssertionError(f"{scene_path}: layerbvh differs from stock path: {r.summary()} "
+                             f"(need >= {100 * min_frac:.2f}% within {tol} and mean |diff| <= "
+                             f"{max_mean_rel} x mean){where}")
+    return r
+
+
+def repeated_moments(scene, integrator, spp: int, repeats: int, seed0: int):
+    """Per-pixel mean and variance of `repeats` independent renders (the estimator's variance)."""
+    mi = _mi()
+    imgs = np.stack([np.array(mi.render(scene, integrator=integrator, spp=spp, seed=seed0 + k), np.float64)
+                     for k in range(repeats)])
+    return imgs.mean(0), imgs.var(0, ddof=1)
+
+
+def zscore_vs_stock(scene_path, spp=64, res=(8, 8), repeats=8, traversal="per_ray", alpha=0.01,
+                    modify=None, **params) -> dict:
+    """Independent seeds: per-pixel Z-test (Šidák-corrected) of layerbvh against stock `path`.
+    `modify(params)` may change the scene for the layerbvh render (a negative control)."""
+    mi = _mi()
+    from .cli import path_props
+    from .metrics import zscore_test
+    scene = load(scene_path, res, **params)
+    props = path_props(mi, scene)
+    stock = mi.load_dict({"type": "path", **props})
+    ref_mean, ref_var = repeated_moments(scene, stock, spp, repeats, seed0=1000)
+    ours_scene = scene
+    if modify is not None:
+        ours_scene = load(scene_path, res, **params)
+        p = mi.traverse(ours_scene)
+        modify(p)
+        p.update()
+    ours = mi.load_dict({"type": "layerbvh", "traversal": traversal, **props})
+    mean, var = repeated_moments(ours_scene, ours, spp, repeats, seed0=5000)
+    # Variance of a repeat's mean; zscore_test divides by the repeat count.
+    return zscore_test(ref_mean, ref_var, mean, var, repeats, repeats, alpha=alpha)
+
+
+def assert_statistically_matches_stock(scene_path, min_pass=0.975, **kw) -> dict:
+    r = zscore_vs_stock(scene_path, **kw)
+    assert r["pass_fraction"] >= min_pass, \
+        f"{scene_path}: only {100 * r['pass_fraction']:.1f}% of pixels pass the Z-test (need {100 * min_pass}%): {r}"
+    return r

@@ -1,0 +1,81 @@
+"""The layerbvh Mitsuba integrator against stock `path`: same-seed images, Z-test, unsupported shapes, XML use."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import layerbvh_mitsuba  # noqa: F401  (registers the integrator)
+from layerbvh_mitsuba import testing
+from layerbvh_mitsuba.adapter import UnsupportedShapeError
+
+SCENES = Path(__file__).resolve().parents[1] / "scenes"
+
+
+@pytest.mark.parametrize("name,traversal", [("cbox", "per_ray"), ("cbox", "layer_sorted"),
+                                            ("bunny_box", "per_ray"), ("sphere_box", "per_ray"),
+                                            ("empty_box", "layer_unsorted")])
+def test_same_seed_matches_stock(name, traversal, tmp_path):
+    r = testing.assert_matches_stock(SCENES / f"{name}.xml", spp=8, res=(32, 32), traversal=traversal,
+                                     diff_dir=tmp_path)
+    assert r.mean_ref > 0.01, "the scene should not render black"
+
+
+def test_same_seed_glass_and_mirror(tmp_path):
+    # A ray grazing a shared edge can take another specular path: 99% of pixels, not 99.9%.
+    testing.assert_matches_stock(SCENES / "glass_mirror.xml", spp=8, res=(32, 32), min_frac=0.99,
+                                 max_mean_rel=1e-3, diff_dir=tmp_path)
+
+
+def test_z_test_passes_against_stock():
+    r = testing.assert_statistically_matches_stock(SCENES / "cbox.xml", spp=1024, res=(6, 6), repeats=8)
+    assert r["pixels"] == 36
+
+
+def test_z_test_catches_a_5_percent_albedo_change():
+    """Negative control: the same test must fail when one material's albedo changes by 5%."""
+    def brighter_floor(params):
+        key = "FloorBSDF.brdf_0.reflectance.value"
+        params[key] = params[key] * 1.05
+    r = testing.zscore_vs_stock(SCENES / "cbox.xml", spp=1024, res=(6, 6), repeats=8, modify=brighter_floor)
+    assert r["pass_fraction"] < 0.975, r
+
+
+def test_integrator_from_xml_and_stats():
+    scene = mi.load_string("""<scene version="3.0.0">
+        <integrator type="layerbvh"><integer name="max_depth" value="4"/>
+            <string name="traversal" value="layer_sorted"/><integer name="treelet_height" value="3"/></integrator>
+        <sensor type="perspective"><transform name="to_world"><lookat origin="0,0,4" target="0,0,0" up="0,1,0"/></transform>
+            <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
+            <sampler type="independent"><integer name="sample_count" value="4"/></sampler></sensor>
+        <shape type="sphere" id="ball"/><shape type="rectangle" id="floor"><transform name="to_world">
+            <translate z="-1.5"/><scale value="4"/></transform></shape>
+        <emitter type="constant"/></scene>""")
+    integ = scene.integrator()
+    assert integ.max_depth == 4 and integ.traversal == "layer_sorted" and integ.treelet_height == 3
+    img = np.array(mi.render(scene))
+    assert np.isfinite(img).all() and img.mean() > 0.05
+    st = integ.last_stats
+    for key in ("build_s", "trace_s", "shading_s", "rays", "inner_nodes", "wavefront_steps"):
+        assert key in st
+    assert st["rays"] > 16 * 16 * 4 and st["bvh"]["triangles"] == 2
+    tracer = integ.tracer(scene)
+    mi.render(scene)
+    assert integ.tracer(scene) is tracer, "the BVH is built once per scene and reused"
+
+
+def test_bad_integrator_properties():
+    with pytest.raises(Exception, match="traversal must be one of"):
+        mi.load_dict({"type": "layerbvh", "traversal": "fast"})
+
+
+def test_unsupported_shape_is_refused_by_name():
+    scene = mi.load_string("""<scene version="3.0.0">
+        <shape type="shapegroup" id="grp"><shape type="sphere"/></shape>
+        <shape type="instance" id="inst1"><ref id="grp"/></shape>
+        <shape type="rectangle" id="floor"/></scene>""")
+    integ = mi.load_dict({"type": "layerbvh"})
+    with pytest.raises(UnsupportedShapeError, match=r"Instance 'inst1'.*instance"):
+        integ.tracer(scene)
