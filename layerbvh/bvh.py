@@ -13,7 +13,7 @@ from .sah import BinaryBVH, build_binned_sah
 from .stats import TraceStats
 from .validate import check_mesh, check_param
 from .walk import NO_HIT, DeviceLayout
-from .wavefront import MODES, Results, trace as _trace
+from .wavefront import MODES, TAIL_RAYS, Results, trace as _trace
 
 MISS = 0xFFFFFFFF
 
@@ -58,6 +58,7 @@ class LayerBVH:
         v, f = check_mesh(vertices, faces)
         self.vertices, self.faces = v, f
         self.backend = backend or be.default_backend()
+        self.tail_rays = TAIL_RAYS
         self.m = be.module(self.backend)
         t0 = time.perf_counter()
         tri = v[f] if len(f) else np.zeros((0, 3, 3), np.float32)
@@ -138,7 +139,7 @@ class LayerBVH:
         if self.device is None or n == 0:
             res, stats = Results(m, n), TraceStats(mode=mode, rays=n)
         else:
-            res, stats = _trace(m, self.device, oj, dj, tm, valid, mode, any_hit)
+            res, stats = _trace(m, self.device, oj, dj, tm, valid, mode, any_hit, self.tail_rays)
         stats.finish(*(int(dr.sum(w)[0]) if n else 0 for w in res.work))
         stats.time_total_s = time.perf_counter() - t0
         return res, stats, back

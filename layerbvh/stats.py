@@ -8,7 +8,8 @@ from dataclasses import asdict, dataclass, field
 class TraceStats:
     """Statistics of one trace/occluded call.
 
-    Work counts are totals over all rays; `*_per_ray` divide by the ray count. Leaf
+    `steps` counts kernel launches of the traversal (the last one may be the per-ray tail, see
+    `tail_rays`). Work counts are totals over all rays; `*_per_ray` divide by the ray count. Leaf
     intersection runs inline in the traversal kernel, so `time_leaf_s` and
     `time_treelet_s` split the kernel time by the share of loop iterations spent on
     triangles (an estimate, marked as such by `time_split_estimated`)."""
@@ -29,6 +30,7 @@ class TraceStats:
     time_split_estimated: bool = True
     time_total_s: float = 0.0
     work_bytes: int = 0
+    tail_rays: int = 0  # rays finished by one per-ray kernel after the last sorted step
 
     def finish(self, inner: int, leaves: int, tris: int, iters: int) -> None:
         self.inner_nodes, self.leaves, self.triangles, self.iterations = inner, leaves, tris, iters

@@ -10,6 +10,9 @@ from .walk import NO_HIT, DeviceLayout, RayState, walk
 
 MODES = ("per_ray", "layer_sorted", "layer_unsorted")
 ENTRY_BYTES = 8  # one entry-stack slot: link (uint32) + entry distance (float32)
+# When this few rays are left, one per-ray kernel finishes them from their entry stacks: a
+# long tail of nearly empty wavefront steps costs host time per step and buys no locality.
+TAIL_RAYS = 2048
 
 
 def _initial_state(m, o, d, tmax) -> RayState:
@@ -49,7 +52,7 @@ def _sync():
     return time.perf_counter()
 
 
-def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool):
+def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool, tail_rays: int = TAIL_RAYS):
     """Closest hit (or any hit) of every ray; returns (Results, TraceStats)."""
     n = dr.width(o[0])
     stats = TraceStats(mode=mode, rays=n)
@@ -88,6 +91,15 @@ def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool):
     while n_active > 0:
         stats.active_per_step.append(n_active)
         ta = _sync()
+        if n_active <= tail_rays and stats.steps > 0:
+            # Same nearest-first order as the steps, so the same hits and work counts.
+            out, done, _, _ = walk(m, lay, s, (st_link, st_t, cap_global), cap_global, False, any_hit)
+            res.write(out, done)
+            dr.eval(res.t, res.u, res.v, res.tri, res.work)
+            stats.time_traverse_s += _sync() - ta
+            stats.tail_rays = n_active
+            stats.steps += 1
+            break
         out, done, nl, local = walk(m, lay, s, (st_link, st_t, cap_global), cap_local, True, any_hit)
         dr.eval(out, done, nl, local)
         tb = _sync()

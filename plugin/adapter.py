@@ -40,8 +40,10 @@ class SceneGeometry:
         return len(self.faces)
 
 
-def describe(shape) -> str:
-    return f"{shape.class_name()} '{shape.id()}'"
+def describe(shape, index=None) -> str:
+    sid = shape.id()
+    name = f"'{sid}'" if sid else "(no id)"
+    return f"{shape.class_name()} {name}" + (f" (shape #{index})" if index is not None and not sid else "")
 
 
 def collect_geometry(scene) -> SceneGeometry:
@@ -49,7 +51,7 @@ def collect_geometry(scene) -> SceneGeometry:
     verts, faces, tri_shape, tri_local, analytic, names = [], [], [], [], [], []
     offset = 0
     for i, shape in enumerate(scene.shapes()):
-        names.append(describe(shape))
+        names.append(describe(shape, i))
         if shape.is_mesh():
             v = np.array(shape.vertex_positions_buffer(), np.float32).reshape(-1, 3)
             f = np.array(shape.faces_buffer(), np.int64).reshape(-1, 3)
@@ -66,7 +68,7 @@ def collect_geometry(scene) -> SceneGeometry:
             analytic.append((i, shape))
         else:
             raise UnsupportedShapeError(
-                f"shape {describe(shape)} (plugin type '{shape.class_name().lower()}') is not supported by the "
+                f"shape {describe(shape, i)} (plugin type '{shape.class_name().lower()}') is not supported by the "
                 f"layerbvh backend: it traces triangle meshes (incl. rectangle, cube, ply, obj, serialized) "
                 f"and {', '.join(a.lower() for a in ANALYTIC)}; instances/shapegroups, curves, SDF grids and "
                 f"ellipsoids are refused rather than traced wrongly")

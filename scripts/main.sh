@@ -1,10 +1,9 @@
 #!/usr/bin/env bash
-# The main job (README): bootstrap, then the traversal benchmark on the embedded default scene
-# (the Stanford bunny in scenes/meshes). Extra arguments go to scripts/bench_traversal.py.
+# The main job (README): bootstrap, then the A/B comparison of the embedded default scene
+# (scenes/bunny_box.xml: a diffuse Stanford bunny in the paper's box) against stock Mitsuba.
+# Extra arguments go to `layerbvh compare` (e.g. --spp 64 --res 256 256 --traversal per_ray).
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$root/scripts/bootstrap.sh"
 cd "$root"
-mkdir -p out
-exec .venv/bin/python scripts/bench_traversal.py --mesh scenes/meshes/bunny.ply --procedural-tris 0 \
-  --rays 500000 --json out/bench_bunny.json "$@"
+exec .venv/bin/layerbvh compare scenes/bunny_box.xml --out out/compare_bunny_box "$@"

@@ -28,8 +28,10 @@ def test_modes_agree_exactly(request, mesh_name, kind):
     bvh = layerbvh.build(v, f, treelet_height=4)
     ref = bvh.trace(o, d, mode="per_ray")
     assert np.mean(ref.prim != layerbvh.MISS) > 0.2, "test rays should mostly hit"
-    for mode in ("layer_sorted", "layer_unsorted"):
+    for mode, tail in (("layer_sorted", 0), ("layer_sorted", 2048), ("layer_unsorted", 0)):
+        bvh.tail_rays = tail  # 0: every ray stays in the wavefront steps to the end
         h = bvh.trace(o, d, mode=mode)
+        assert (h.stats.tail_rays > 0) == (tail > 0)
         bad = (h.prim != ref.prim) | (h.t != ref.t) | (h.u != ref.u) | (h.v != ref.v)
         assert not bad.any(), f"{mode} differs from per_ray on {bad.sum()} rays:\n" + \
             _report(bad, h.prim, ref.prim, h.t, ref.t, names=("prim", "prim_per_ray", "t", "t_per_ray"))
