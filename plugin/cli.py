@@ -56,10 +56,11 @@ def _check_args(args):
         raise CliError(f"--treelet-height must be in [1, 64], got {args.treelet_height}")
 
 
-def load_scene(mi, path: str, res=None):
-    """Load an XML scene; --res overrides the film of its first sensor, declared parameter or not."""
+def load_scene(mi, path: str, res=None, **params):
+    """Load an XML scene (with optional $parameters); `res` overrides the film of its first
+    sensor, whether or not the scene declares resolution parameters."""
     try:
-        scene = mi.load_file(str(path))
+        scene = mi.load_file(str(path), **params)
     except Exception as e:  # Mitsuba raises RuntimeError with a multi-line message
         raise CliError(f"cannot load scene {path}: {str(e).strip().splitlines()[-1]}") from None
     if not scene.sensors():

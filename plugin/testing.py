@@ -31,16 +31,8 @@ def _mi():
 
 def load(scene_path, res=None, **params):
     """Load an XML scene with optional $parameters and a film resolution override."""
-    mi = _mi()
     from .cli import load_scene
-    if params:
-        scene = mi.load_file(str(scene_path), **params)
-        if res is not None:
-            p = mi.traverse(scene.sensors()[0])
-            p["film.size"], p["film.crop_size"], p["film.crop_offset"] = list(res), list(res), [0, 0]
-            p.update()
-        return scene
-    return load_scene(mi, scene_path, res)
+    return load_scene(_mi(), scene_path, res, **params)
 
 
 def render_pair(scene, spp: int, seed: int = 0, traversal: str = "per_ray", ours_scene=None, **ours_props):

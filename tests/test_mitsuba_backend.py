@@ -79,3 +79,14 @@ def test_unsupported_shape_is_refused_by_name():
     integ = mi.load_dict({"type": "layerbvh"})
     with pytest.raises(UnsupportedShapeError, match=r"Instance 'inst1'.*instance"):
         integ.tracer(scene)
+
+
+@pytest.mark.parametrize("name", ["cbox", "sphere_box"])
+def test_hide_emitters_matches_stock(name):
+    scene = testing.load(SCENES / f"{name}.xml", (32, 32))
+    props = {"max_depth": 6, "hide_emitters": True}
+    a = np.array(mi.render(scene, integrator=mi.load_dict({"type": "path", **props}), spp=8, seed=0))
+    b = np.array(mi.render(scene, integrator=mi.load_dict({"type": "layerbvh", "traversal": "per_ray", **props}),
+                           spp=8, seed=0))
+    d = np.abs(a - b).max(-1)
+    assert np.mean(d <= 1e-3) >= 0.999, f"max |diff| {d.max()}"
