@@ -130,22 +130,25 @@ class LayerBVH:
         valid = finite & nonzero & ~dr.isnan(tm) & (tm > 0)
         return oj, dj, tm, valid, n, back
 
-    def _run(self, origins, directions, tmax, mode, any_hit):
+    def _run(self, origins, directions, tmax, mode, any_hit, stats=True):
         if mode not in MODES:
             raise ValueError(f"mode must be one of {', '.join(MODES)}; got {mode!r}")
         oj, dj, tm, valid, n, back = self._rays(origins, directions, tmax)
         m = self.m
         t0 = time.perf_counter()
         if self.device is None or n == 0:
-            res, stats = Results(m, n), TraceStats(mode=mode, rays=n)
+            res, st = Results(m, n), TraceStats(mode=mode, rays=n)
         else:
-            res, stats = _trace(m, self.device, oj, dj, tm, valid, mode, any_hit, self.tail_rays)
-        stats.finish(*(int(dr.sum(w)[0]) if n else 0 for w in res.work))
-        stats.time_total_s = time.perf_counter() - t0
-        return res, stats, back
+            res, st = _trace(m, self.device, oj, dj, tm, valid, mode, any_hit, self.tail_rays, count_work=stats)
+        if stats:
+            st.finish(*(int(dr.sum(w)[0]) if n else 0 for w in res.work))
+        st.time_total_s = time.perf_counter() - t0
+        return res, st, back
 
-    def trace(self, origins, directions, tmax=None, mode="layer_sorted") -> Hits:
-        res, stats, back = self._run(origins, directions, tmax, mode, any_hit=False)
+    def trace(self, origins, directions, tmax=None, mode="layer_sorted", stats=True) -> Hits:
+        """Closest hits. With stats=False the kernels skip the work counters (hits.stats then
+        holds steps and times only)."""
+        res, stats, back = self._run(origins, directions, tmax, mode, any_hit=False, stats=stats)
         m = self.m
         hit = res.tri != NO_HIT
         prim = dr.full(m.UInt32, MISS, dr.width(hit))
@@ -158,9 +161,9 @@ class LayerBVH:
         v = dr.select(hit, res.v, 0.0)
         return Hits(t=back(t), prim=back(prim), u=back(u), v=back(v), stats=stats)
 
-    def occluded(self, origins, directions, tmax=None, mode="layer_sorted"):
-        """True for rays with any hit at 0 < t < tmax."""
-        res, stats, back = self._run(origins, directions, tmax, mode, any_hit=True)
+    def occluded(self, origins, directions, tmax=None, mode="layer_sorted", stats=True):
+        """True for rays with any hit at 0 < t < tmax (the traversal stops at the first one)."""
+        res, stats, back = self._run(origins, directions, tmax, mode, any_hit=True, stats=stats)
         self.last_occluded_stats = stats
         return back(res.tri != NO_HIT)
 

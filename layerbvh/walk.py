@@ -67,10 +67,11 @@ def treelet_of(m, lay: DeviceLayout, link, active):
 
 
 @dr.syntax
-def walk(m, lay: DeviceLayout, s: RayState, stack, cap: int, bounded: bool, any_hit: bool):
+def walk(m, lay: DeviceLayout, s: RayState, stack, cap: int, bounded: bool, any_hit: bool, count_work: bool = True):
     """Advance every ray of `s`, nearest child first, until it finishes or (when `bounded`)
     is about to continue in another treelet than `s.treelet`.
 
+    With `count_work` False the work counters are left untouched (no statistics work).
     Entries pushed during this call live in a local stack of `cap` entries; entries pushed by
     earlier steps are read (never written) from the global `stack` = (links, t, capacity),
     so the kernel has no read-after-write on global memory. Returns the new state, whether
@@ -92,7 +93,8 @@ def walk(m, lay: DeviceLayout, s: RayState, stack, cap: int, bounded: bool, any_
     active = dr.full(m.Bool, True, dr.width(s.link))
 
     while active:
-        n_iter += 1
+        if count_work:
+            n_iter += 1
         # Exactly one of four things happens per iteration. Only the two heavy tests are real
         # branches; the stack is updated outside them with selects, which keeps every local
         # array access unconditional (Dr.Jit mis-counted pushes made inside nested branches).
@@ -154,9 +156,10 @@ def walk(m, lay: DeviceLayout, s: RayState, stack, cap: int, bounded: bool, any_
         descend = dr.select(hit_l | hit_r, near, POP)
 
         link = dr.select(is_pop, popped, dr.select(is_leaf, POP, dr.select(is_node, descend, link)))
-        n_inner = dr.select(is_node, n_inner + 1, n_inner)
-        n_leaf = dr.select(is_leaf, n_leaf + 1, n_leaf)
-        n_tri = dr.select(in_leaf, n_tri + 1, n_tri)
+        if count_work:  # statistics cost registers and adds; only when asked for
+            n_inner = dr.select(is_node, n_inner + 1, n_inner)
+            n_leaf = dr.select(is_leaf, n_leaf + 1, n_leaf)
+            n_tri = dr.select(in_leaf, n_tri + 1, n_tri)
         done |= empty
         active &= ~empty
         if bounded:

@@ -52,7 +52,8 @@ def _sync():
     return time.perf_counter()
 
 
-def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool, tail_rays: int = TAIL_RAYS):
+def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool, tail_rays: int = TAIL_RAYS,
+          count_work: bool = True):
     """Closest hit (or any hit) of every ray; returns (Results, TraceStats)."""
     n = dr.width(o[0])
     stats = TraceStats(mode=mode, rays=n)
@@ -66,7 +67,7 @@ def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool, tai
     t0 = _sync()
     if mode == "per_ray":
         cap = max(lay.depth, 1)
-        out, done, _, _ = walk(m, lay, s, None, cap, False, any_hit)
+        out, done, _, _ = walk(m, lay, s, None, cap, False, any_hit, count_work)
         res.write(out, done)
         dr.eval(res.t, res.u, res.v, res.tri, res.work)
         t1 = _sync()
@@ -93,14 +94,14 @@ def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool, tai
         ta = _sync()
         if n_active <= tail_rays and stats.steps > 0:
             # Same nearest-first order as the steps, so the same hits and work counts.
-            out, done, _, _ = walk(m, lay, s, (st_link, st_t, cap_global), cap_global, False, any_hit)
+            out, done, _, _ = walk(m, lay, s, (st_link, st_t, cap_global), cap_global, False, any_hit, count_work)
             res.write(out, done)
             dr.eval(res.t, res.u, res.v, res.tri, res.work)
             stats.time_traverse_s += _sync() - ta
             stats.tail_rays = n_active
             stats.steps += 1
             break
-        out, done, nl, local = walk(m, lay, s, (st_link, st_t, cap_global), cap_local, True, any_hit)
+        out, done, nl, local = walk(m, lay, s, (st_link, st_t, cap_global), cap_local, True, any_hit, count_work)
         dr.eval(out, done, nl, local)
         tb = _sync()
         # Write back the entries pushed in this step above the ray's global stack.
@@ -116,6 +117,11 @@ def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool, tai
         keys = dr.select(done, m.UInt32(finished), out.treelet)
         dr.eval(keys)
         n_active = n_active - int(dr.count(done)[0])
+        if n_active == 0:
+            stats.steps += 1
+            stats.time_traverse_s += tb - ta
+            stats.time_other_s += tc - tb
+            break
         if sort:
             perm = dr.detail.block_mkperm(keys, dr.width(keys), buckets) if buckets <= (1 << 16) \
                 else dr.argsort(keys)

@@ -83,11 +83,13 @@ class SceneTracer:
 
     Built once per scene; every query returns Mitsuba types (PreliminaryIntersection3f, Bool)."""
 
-    def __init__(self, scene, traversal: str = "layer_sorted", treelet_height: int = 4, leaf_size: int = 4):
+    def __init__(self, scene, traversal: str = "layer_sorted", treelet_height: int = 4, leaf_size: int = 4,
+                 count_work: bool = True):
         t0 = time.perf_counter()
         self.scene = scene
         self.geometry = collect_geometry(scene)
         self.traversal = traversal
+        self.count_work = count_work
         self.bvh = layerbvh.build(self.geometry.vertices, self.geometry.faces, treelet_height=treelet_height,
                                   leaf_size=leaf_size, backend="cuda" if mi.variant().startswith("cuda") else "llvm")
         self.tri_shape = mi.UInt32(self.geometry.tri_shape)
@@ -111,7 +113,7 @@ class SceneTracer:
     def intersect(self, ray: mi.Ray3f, active) -> mi.PreliminaryIntersection3f:
         """Closest hit over meshes (our traversal) and analytic shapes (Mitsuba's per-shape test)."""
         active = mi.Bool(active)
-        hits = self._query(lambda o, d, tmax: self.bvh.trace(o, d, tmax, mode=self.traversal), ray, active)
+        hits = self._query(lambda o, d, tmax: self.bvh.trace(o, d, tmax, mode=self.traversal, stats=self.count_work), ray, active)
         self.trace_stats.append(hits.stats)
         hit = active & (mi.UInt32(hits.prim) != layerbvh.MISS)
         pi = dr.zeros(mi.PreliminaryIntersection3f, dr.width(ray.o))
@@ -137,7 +139,8 @@ class SceneTracer:
     def occluded(self, ray: mi.Ray3f, active) -> mi.Bool:
         """Any hit in (0, ray.maxt): our any-hit traversal, then the analytic shapes."""
         active = mi.Bool(active)
-        occ = mi.Bool(self._query(lambda o, d, tmax: self.bvh.occluded(o, d, tmax, mode=self.traversal), ray, active))
+        occ = mi.Bool(self._query(lambda o, d, tmax: self.bvh.occluded(o, d, tmax, mode=self.traversal,
+                                                                     stats=self.count_work), ray, active))
         self.trace_stats.append(self.bvh.last_occluded_stats)
         occ &= active
         for _, shape in self.geometry.analytic:

@@ -117,9 +117,9 @@ def scene_spp(scene) -> int:
     return scene.sensors()[0].sampler().sample_count()
 
 
-def _ours(mi, args, props):
+def _ours(mi, args, props, stats=False):
     d = {"type": "layerbvh", "traversal": args.traversal, "treelet_height": args.treelet_height,
-         "leaf_size": args.leaf_size}
+         "leaf_size": args.leaf_size, "stats": stats}
     d.update({k: v for k, v in props.items()})
     return mi.load_dict(d)
 
@@ -160,12 +160,13 @@ def cmd_compare(mi, args) -> int:
     spp = args.spp or scene_spp(scene)
     props = path_props(mi, scene)
     stock = mi.load_dict({"type": "path", **props})
-    ours = _ours(mi, args, props)
+    ours = _ours(mi, args, props, stats=True)  # the report shows traversal statistics
     ours.tracer(scene)  # build the BVH (and refuse unsupported shapes) before rendering anything
     progress = not args.no_progress
     stock_img, stock_s = render_passes(mi, scene, stock, spp, args.seed, "stock path", progress)
     ours_img, ours_s = render_passes(mi, scene, ours, spp, args.seed, "layerbvh", progress)
     st = dict(ours.last_stats)
+    features = st.pop("features")
     info = {
         "scene": str(args.scene), "spp": spp, "resolution": [int(ours_img.shape[1]), int(ours_img.shape[0])],
         "seed": args.seed, "variant": mi.variant(), "integrator": props,
@@ -174,6 +175,7 @@ def cmd_compare(mi, args) -> int:
                  "shading_s": st.pop("shading_s", 0.0), "traversal": args.traversal,
                  "treelet_height": args.treelet_height},
         "traversal": st,
+        "features": features,
     }
     rep = write_report(args.out, stock_img, ours_img, info)
     m = rep["metrics"]

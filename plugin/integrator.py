@@ -32,9 +32,16 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
     synchronisation, so the bounce loop runs in evaluated mode (a Python loop, one step per
     bounce) instead of a symbolic loop.
 
+    The scene is inspected once (``plan_features``) and only what it needs runs: no emitter
+    sampling or shadow rays when it has no emitter, no emission lookups at hits when nothing in it
+    can be hit and emits, no analytic-shape tests without analytic shapes, no sort when the BVH is
+    one treelet, no work counters unless ``stats`` is set. Samples are still drawn in the same
+    order, so leaving a feature out never changes the image.
+
     Properties: ``max_depth`` (default -1, infinite), ``rr_depth`` (5), ``hide_emitters`` (false)
     as in ``path``; ``traversal`` (``per_ray`` | ``layer_sorted`` | ``layer_unsorted``, default
-    ``layer_sorted``), ``treelet_height`` (4), ``leaf_size`` (4).
+    ``layer_sorted``), ``treelet_height`` (4), ``leaf_size`` (4), ``stats`` (false: collect
+    traversal work counts), ``adaptive`` (true: leave out what the scene does not need).
     """
 
     def __init__(self, props: mi.Properties):
@@ -45,6 +52,8 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
         self.traversal = props.get("traversal", "layer_sorted")
         self.treelet_height = props.get("treelet_height", 4)
         self.leaf_size = props.get("leaf_size", 4)
+        self.stats = props.get("stats", False)
+        self.adaptive = props.get("adaptive", True)
         if self.max_depth < -1:
             raise ValueError(f"layerbvh integrator: max_depth must be -1 (infinite) or >= 0, got {self.max_depth}")
         if self.rr_depth <= 0:
@@ -60,7 +69,8 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
         key = id(scene)
         t = self._tracers.get(key)
         if t is None or t.scene is not scene:
-            t = SceneTracer(scene, self.traversal, self.treelet_height, self.leaf_size)
+            t = SceneTracer(scene, self.traversal, self.treelet_height, self.leaf_size, count_work=self.stats)
+            t.features = plan_features(scene, t, self)
             self._tracers = {key: t}
         return t
 
@@ -85,12 +95,14 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
             "time_sort_s": sum(s.time_sort_s for s in steps),
             "time_traverse_s": sum(s.time_traverse_s for s in steps),
             "peak_work_bytes": max((s.work_bytes for s in steps), default=0),
+            "features": tracer.features.as_dict(),
         }
         return img
 
     # -- one ray per sample: the path tracer ----------------------------------------------------
     def sample(self, scene, sampler, ray, medium=None, active=True):
         tracer = self.tracer(scene)
+        use = tracer.features.on
         bsdf_ctx = mi.BSDFContext()
         ray = mi.Ray3f(ray)
         n = dr.width(ray.o)
@@ -119,23 +131,29 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
                 active_next &= ~((depth == 0) & ~si.is_valid())
 
             # Emission reached by the previous BSDF sample, MIS-weighted against emitter sampling.
-            ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
-            mis = mis_weight(prev_bsdf_pdf, scene.pdf_emitter_direction(prev_si, ds, ~prev_bsdf_delta))
-            Le = beta * mis * ds.emitter.eval(si, active_next & (prev_bsdf_pdf > 0))
+            Le = mi.Spectrum(0)
+            if use("emitter_hits"):
+                ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
+                mis = mis_weight(prev_bsdf_pdf, scene.pdf_emitter_direction(prev_si, ds, ~prev_bsdf_delta))
+                Le = beta * mis * ds.emitter.eval(si, active_next & (prev_bsdf_pdf > 0))
 
             active_next &= ((depth + 1 < self.max_depth) | (self.max_depth < 0)) & si.is_valid()
 
             # Emitter sampling; Mitsuba's own visibility test would trace with Embree, so it is
             # switched off and the shadow ray goes through our any-hit traversal.
-            active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), False, active_em)
-            active_em &= ds.pdf != 0.0
-            shadow_ray = si.spawn_ray_to(ds.p)
-            active_em &= ~tracer.occluded(shadow_ray, active_em)
-            wo = si.to_local(ds.d)
-            bsdf_value_em, bsdf_pdf_em = bsdf.eval_pdf(bsdf_ctx, si, wo, active_em)
-            mis_em = dr.select(ds.delta, 1, mis_weight(ds.pdf, bsdf_pdf_em))
-            Lr_dir = dr.select(active_em, beta * mis_em * bsdf_value_em * em_weight, 0)
+            # The sample is drawn even when emitter sampling is left out: the sequence stays stock's.
+            em_sample = sampler.next_2d()
+            Lr_dir = mi.Spectrum(0)
+            if use("emitter_sampling"):
+                active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+                ds, em_weight = scene.sample_emitter_direction(si, em_sample, False, active_em)
+                active_em &= ds.pdf != 0.0
+                shadow_ray = si.spawn_ray_to(ds.p)
+                active_em &= ~tracer.occluded(shadow_ray, active_em)
+                wo = si.to_local(ds.d)
+                bsdf_value_em, bsdf_pdf_em = bsdf.eval_pdf(bsdf_ctx, si, wo, active_em)
+                mis_em = dr.select(ds.delta, 1, mis_weight(ds.pdf, bsdf_pdf_em))
+                Lr_dir = dr.select(active_em, beta * mis_em * bsdf_value_em * em_weight, 0)
 
             bsdf_sample, bsdf_weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(), sampler.next_2d(), active_next)
 
@@ -182,6 +200,52 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
     def to_string(self):
         return (f"LayerBVHIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
                 f"traversal={self.traversal}, treelet_height={self.treelet_height}]")
+
+
+class Features:
+    """What the pipeline runs for one scene: each feature on, or left out with the reason."""
+
+    def __init__(self):
+        self.active, self.left_out = [], []
+
+    def decide(self, name: str, needed: bool, why_on: str, why_off: str, force: bool = False):
+        if needed or force:
+            self.active.append({"feature": name, "reason": why_on if needed else "forced (adaptive=false)"})
+        else:
+            self.left_out.append({"feature": name, "reason": why_off})
+
+    def on(self, name: str) -> bool:
+        return any(f["feature"] == name for f in self.active)
+
+    def as_dict(self) -> dict:
+        return {"active": [f["feature"] for f in self.active], "active_detail": self.active,
+                "left_out": self.left_out}
+
+
+def plan_features(scene, tracer: SceneTracer, integ: "LayerBVHIntegrator") -> Features:
+    """Inspect the scene once and decide which parts of the pipeline it needs."""
+    f = Features()
+    force = not integ.adaptive
+    emitters = scene.emitters()
+    hittable = [e for e in emitters if mi.has_flag(e.flags(), mi.EmitterFlags.Surface)
+                or mi.has_flag(e.flags(), mi.EmitterFlags.Infinite)]
+    n_analytic = len(tracer.geometry.analytic)
+    f.decide("emitter_sampling", len(emitters) > 0, f"{len(emitters)} emitter(s) to sample (shadow rays: any-hit traversal)",
+             "the scene has no emitter: no emitter sampling, no shadow rays", force)
+    f.decide("emitter_hits", len(hittable) > 0, f"{len(hittable)} area/environment emitter(s) can be hit",
+             "no area or environment emitter: nothing a ray hits emits", force)
+    f.decide("analytic_shapes", n_analytic > 0, f"{n_analytic} sphere/disk/cylinder shape(s)",
+             "no sphere, disk or cylinder: BVH hits only", force)
+    one_treelet = tracer.bvh.stats.treelets <= 1
+    sorted_mode = integ.traversal == "layer_sorted"
+    f.decide("sort", sorted_mode and not one_treelet, "rays sorted by treelet between wavefront steps",
+             "the BVH fits in one treelet: one step, nothing to sort" if sorted_mode and one_treelet
+             else f"traversal {integ.traversal} does not sort")
+    f.decide("statistics", integ.stats, "stats=true: work counters in the kernels",
+             "not asked for (stats=false): no work counters")
+    f.active.append({"feature": f"traversal:{integ.traversal}", "reason": "the only traversal mode compiled"})
+    f.active.append({"feature": "any_hit_shadows", "reason": "shadow rays stop at their first hit"})
+    return f
 
 
 def register() -> None:
