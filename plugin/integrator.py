@@ -95,6 +95,7 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
             "time_sort_s": sum(s.time_sort_s for s in steps),
             "time_traverse_s": sum(s.time_traverse_s for s in steps),
             "peak_work_bytes": max((s.work_bytes for s in steps), default=0),
+            "bounces": getattr(tracer, "bounces", 0),
             "features": tracer.features.as_dict(),
         }
         return img
@@ -114,7 +115,8 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
         prev_si = dr.zeros(mi.SurfaceInteraction3f, n)
         prev_bsdf_pdf = mi.Float(1.0)
         prev_bsdf_delta = mi.Bool(True)
-        valid_ray = mi.Bool(False)
+        # As in stock `path`: a path that only sees the environment is a valid sample.
+        valid_ray = mi.Bool((not self.hide_emitters) and scene.environment() is not None)
         if self.max_depth == 0:
             return mi.Spectrum(0), mi.Bool(False), []
 
@@ -137,7 +139,9 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
                 mis = mis_weight(prev_bsdf_pdf, scene.pdf_emitter_direction(prev_si, ds, ~prev_bsdf_delta))
                 Le = beta * mis * ds.emitter.eval(si, active_next & (prev_bsdf_pdf > 0))
 
-            active_next &= ((depth + 1 < self.max_depth) | (self.max_depth < 0)) & si.is_valid()
+            if self.max_depth >= 0:
+                active_next &= depth + 1 < self.max_depth
+            active_next &= si.is_valid()
 
             # Emitter sampling; Mitsuba's own visibility test would trace with Embree, so it is
             # switched off and the shadow ray goes through our any-hit traversal.
@@ -176,6 +180,7 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
             active = active_next & (~rr_active | rr_continue) & (beta_max != 0)
             dr.eval(L, beta, eta, depth, active, valid_ray, ray, prev_si, prev_bsdf_pdf, prev_bsdf_delta, sampler)
             bounce += 1
+            tracer.bounces = max(getattr(tracer, "bounces", 0), bounce)
             if not dr.any(active)[0] if dr.is_array_v(dr.any(active)) else not dr.any(active):
                 break
             pi = tracer.intersect(ray, active)
