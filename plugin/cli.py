@@ -3,13 +3,13 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+
+from .atomic import atomic_path
 
 SPP_PER_PASS = 64  # a progress bar step; one pass (the exact seed) whenever spp <= this
 
@@ -74,6 +74,11 @@ def load_scene(mi, path: str, res=None, **params):
     return scene
 
 
+def signed_depth(value: int) -> int:
+    """Mitsuba keeps max_depth as uint32, so -1 (infinite) reads back as 2^32 - 1: map it back."""
+    return value - 2 ** 32 if value >= 2 ** 31 else value
+
+
 def path_props(mi, scene) -> dict:
     """The scene's own integrator settings when it is a `path` (else path's defaults)."""
     integ = scene.integrator()
@@ -91,6 +96,9 @@ def path_props(mi, scene) -> dict:
                 for line in text.splitlines():
                     if line.strip().startswith(key):
                         out[key] = int(line.split("=")[1].strip().rstrip(","))
+        for key in ("max_depth", "rr_depth"):
+            if key in out:
+                out[key] = signed_depth(int(out[key]))
     return out
 
 
@@ -125,16 +133,8 @@ def _ours(mi, args, props, stats=False):
 
 
 def _atomic_write_exr(mi, img: np.ndarray, out: str):
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".exr", dir=out.parent, prefix=".tmp-")
-    os.close(fd)
-    try:
+    with atomic_path(out) as tmp:
         mi.Bitmap(img).write(tmp)
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def cmd_render(mi, args) -> int:

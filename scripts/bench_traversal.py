@@ -7,7 +7,6 @@ import os
 import platform
 import shlex
 import sys
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,7 +22,7 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 import layerbvh  # noqa: E402
-from layerbvh_mitsuba import embree  # noqa: E402
+from layerbvh_mitsuba import atomic, embree  # noqa: E402
 from scripts import meshes  # noqa: E402
 
 DEFAULT_MESH = ROOT / "scenes" / "meshes" / "bunny.ply"
@@ -258,21 +257,7 @@ def versions() -> dict:
 
 def write_json(path: str, doc: dict) -> None:
     """Write atomically: readers never see a half-written file, even if the run dies mid-way."""
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(doc, fh, indent=1)
-            fh.flush()
-            os.fsync(fh.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; the result should be as readable as any output
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic.write_text(path, json.dumps(doc, indent=1))
 
 
 def bench_mesh(name: str, v, f, args) -> list[dict]:
