@@ -8,7 +8,7 @@ import drjit as dr
 import numpy as np
 
 from . import backend as be
-from .layout import LayerLayout, check_layout, to_layer_layout
+from .layout import TRI_FLOATS, LayerLayout, check_layout, to_layer_layout
 from .sah import BinaryBVH, build_binned_sah
 from .stats import TraceStats
 from .validate import check_mesh, check_param
@@ -154,7 +154,7 @@ class LayerBVH:
         prim = dr.full(m.UInt32, MISS, dr.width(hit))
         if self.device is not None:
             # Hits hold the leaf-order triangle; its record carries the original face index.
-            face = dr.reinterpret_array(m.UInt32, dr.gather(m.Float, self.device.tris, res.tri * 12 + 9, hit))
+            face = dr.reinterpret_array(m.UInt32, dr.gather(m.Float, self.device.tris, res.tri * TRI_FLOATS + 9, hit))
             prim = dr.select(hit, face, prim)
         t = dr.select(hit, res.t, dr.inf)
         u = dr.select(hit, res.u, 0.0)

@@ -14,7 +14,7 @@ LEAF_BIT = np.uint32(1 << 31)
 EXIT_BIT = np.uint32(1 << 30)
 PAYLOAD_MASK = np.uint32((1 << 30) - 1)
 NODE_FLOATS = 16
-TRI_FLOATS = 12
+TRI_FLOATS = 16
 
 
 @dataclass
@@ -28,8 +28,10 @@ class LayerLayout:
                       [14] depth of the node in the BVH, [15] unused (0)
     leaves          uint32 (L*2): per BVH leaf (first triangle, triangle count), grouped by the
                     treelet of the leaf's parent, in that treelet's breadth-first order
-    tris            float32 (F*12): per triangle in leaf order: v0, v1, v2 (xyz each),
-                    [9] original face index (uint32 bits), [10:12] unused (0); 48 bytes
+    tris            float32 (F*16): per triangle in leaf order, one 64-byte record (a cache line):
+                    [0:9] v0, v1, v2 (xyz each), [9] original face index (uint32 bits),
+                    [10:16] geometric normal (v1 - v0) x (v2 - v0) as three float64 (the bits of
+                    each in two consecutive slots, little-endian)
     treelet_first   uint32 (T+1): first node of each treelet, plus the node count at the end
     node_treelet    uint32 (N): treelet of each inner node
     leaf_treelet    uint32 (L): treelet of each leaf's parent
@@ -135,6 +137,8 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray, faces: np.ndarray, heigh
     tri = np.zeros((len(tri_ids), TRI_FLOATS), np.float32)
     tri[:, 0:9] = vertices[faces[tri_ids]].reshape(-1, 9)
     tri[:, 9] = tri_ids.astype(np.uint32).view(np.float32)
+    p = vertices[faces[tri_ids]].astype(np.float64)
+    tri[:, 10:16] = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]).view(np.float32)
 
     tre_first = np.searchsorted(tre[order], np.arange(n_treelets + 1)).astype(np.uint32)
     return LayerLayout(
@@ -194,10 +198,10 @@ def check_layout(lay: LayerLayout, n_faces: int) -> None:
     lv = lay.leaves.reshape(-1, 2).astype(np.int64)
     assert lv[:, 0].tolist() == (np.cumsum(lv[:, 1]) - lv[:, 1]).tolist(), "leaf triangle ranges are not contiguous"
     assert lv[:, 1].sum() == n_faces, "leaves do not cover every triangle exactly once"
-    ids = lay.tris.reshape(-1, 12)[:, 9].view(np.uint32)
+    ids = lay.tris.reshape(-1, TRI_FLOATS)[:, 9].view(np.uint32)
     assert np.array_equal(np.sort(ids), np.arange(n_faces, dtype=np.uint32)), "triangle ids are not a permutation"
     # Child boxes bound what is below them.
-    tri = lay.tris.reshape(-1, 12)[:, :9].reshape(-1, 3, 3)
+    tri = lay.tris.reshape(-1, TRI_FLOATS)[:, :9].reshape(-1, 3, 3)
     for side in (0, 1):
         box_lo, box_hi = rec[:, 6 * side:6 * side + 3], rec[:, 6 * side + 3:6 * side + 6]
         lk = is_leaf[:, side]

@@ -25,7 +25,7 @@ TOLERANCE = 0.05  # the produced triangle count may differ from the request by a
 # -- memory estimate --------------------------------------------------------------------------------
 
 # Per-item sizes of what a scene costs once loaded. These are estimates, not measurements of a
-# given run: the layerbvh numbers follow layerbvh/layout.py (48 B triangle records, 64 B inner
+# given run: the layerbvh numbers follow layerbvh/layout.py (64 B triangle records, 64 B inner
 # nodes, 8 B leaf ranges, plus a 4 B treelet id per node and per leaf); a binned-SAH tree with
 # leaf_size 4 has leaves of 1-4 triangles, so about F / leaf_size * 2 inner nodes is a safe bound.
 # Mitsuba keeps its own copy of the mesh (12 B of faces per triangle, 12 B positions and 12 B
@@ -33,7 +33,7 @@ TOLERANCE = 0.05  # the produced triangle count may differ from the request by a
 # per triangle (nodes plus its triangle blocks, build scratch excluded). Building the layerbvh
 # tree needs far more than the tree itself: its numpy binned-SAH build peaked at ~485 B/tri over
 # the loaded mesh (200k and 1M triangles, leaf_size 4), i.e. ~420 B/tri of scratch beyond the BVH.
-BVH_TRI_B, BVH_NODE_B, BVH_LEAF_B, BVH_BUILD_B = 48, 64 + 4, 8 + 4, 420
+BVH_TRI_B, BVH_NODE_B, BVH_LEAF_B, BVH_BUILD_B = 64, 64 + 4, 8 + 4, 420
 MI_FACE_B, MI_VERTEX_B, EMBREE_TRI_B = 12, 24, 100
 PLY_VERTEX_B, PLY_FACE_B, PLY_HEADER_B = 12, 13, 256
 

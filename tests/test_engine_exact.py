@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 import layerbvh
-from layerbvh.layout import EXIT_BIT, LEAF_BIT, NODE_FLOATS, PAYLOAD_MASK
+from layerbvh.layout import EXIT_BIT, LEAF_BIT, NODE_FLOATS, PAYLOAD_MASK, TRI_FLOATS
 
 
 def _box_entry(lo, hi, o, d):
@@ -30,7 +30,7 @@ def one_exit_trace(lay, o, d):
     """The paper's traversal: per treelet, keep only the nearest exit (child treelet or leaf)."""
     rec = lay.nodes.reshape(-1, NODE_FLOATS)
     links = rec[:, 12:14].view(np.uint32)
-    tris = lay.tris.reshape(-1, 12)
+    tris = lay.tris.reshape(-1, TRI_FLOATS)
     leaves = lay.leaves.reshape(-1, 2)
     node = 0
     while True:

@@ -116,8 +116,8 @@ def test_non_empty_output_is_kept_unless_force(tmp_path, capsys):
 
 def test_estimate_bytes_formula():
     e = gen_stress.estimate_bytes(1_000_000, leaf_size=4)
-    # 48 B/tri + 64+4 B per node and 8+4 B per leaf, F / leaf_size * 2 of each.
-    assert e["bvh"] == 48_000_000 + 68 * 500_000 + 12 * 500_000
+    # 64 B/tri + 64+4 B per node and 8+4 B per leaf, F / leaf_size * 2 of each.
+    assert e["bvh"] == 64_000_000 + 68 * 500_000 + 12 * 500_000
     assert e["embree"] == 100_000_000 and e["mitsuba"] == 36_000_000
     assert e["total"] == sum(v for k, v in e.items() if k != "total")
     assert gen_stress.estimate_bytes(2_000_000)["total"] > e["total"]
