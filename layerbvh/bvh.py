@@ -124,6 +124,8 @@ class LayerBVH:
                 tm = m.Float(tv)
             else:
                 raise ValueError(f"tmax must be a scalar or shape ({n},), got {tv.shape}")
+        if n == 0:  # Dr.Jit compares a 0-sized array with a literal as a size mismatch
+            return oj, dj, tm, dr.zeros(m.Bool, 0), n, back
         finite = dr.isfinite(oj[0]) & dr.isfinite(oj[1]) & dr.isfinite(oj[2])
         finite &= dr.isfinite(dj[0]) & dr.isfinite(dj[1]) & dr.isfinite(dj[2])
         nonzero = (dj[0] != 0) | (dj[1] != 0) | (dj[2] != 0)
@@ -150,6 +152,8 @@ class LayerBVH:
         holds steps and times only)."""
         res, stats, back = self._run(origins, directions, tmax, mode, any_hit=False, stats=stats)
         m = self.m
+        if stats.rays == 0:  # empty arrays as they are (Dr.Jit cannot compare them with a literal)
+            return Hits(t=back(res.t), prim=back(res.tri), u=back(res.u), v=back(res.v), stats=stats)
         hit = res.tri != NO_HIT
         prim = dr.full(m.UInt32, MISS, dr.width(hit))
         if self.device is not None:
@@ -165,7 +169,7 @@ class LayerBVH:
         """True for rays with any hit at 0 < t < tmax (the traversal stops at the first one)."""
         res, stats, back = self._run(origins, directions, tmax, mode, any_hit=True, stats=stats)
         self.last_occluded_stats = stats
-        return back(res.tri != NO_HIT)
+        return back(res.tri != NO_HIT if stats.rays else dr.zeros(self.m.Bool, 0))
 
 
 def build(vertices, faces, treelet_height: int = 4, leaf_size: int = 4, backend: str | None = None) -> LayerBVH:

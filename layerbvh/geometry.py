@@ -11,6 +11,8 @@ FAR_SCALE = 1.0 + 2.0 * _GAMMA3
 # Direction components below this are replaced by it (sign kept), so (lo - o) * inv_d is never
 # 0 * inf = NaN for a ray whose origin lies in a slab plane (Embree does the same).
 MIN_RCP_INPUT = 1e-18
+# Bound on a float edge function's error in units of m(P) m(Q) (see hit_triangle): 16 ulps.
+EDGE_ERR = 16 * 2.0 ** -24
 
 
 class Ray:
@@ -45,8 +47,9 @@ def pick(v, k):
 def hit_children(m, nodes, node, ray: Ray, t_best, active):
     """Slab-test both child boxes of `node`: (hit_left, hit_right, t_left, t_right, link_left, link_right).
 
-    A box counts as hit when its entry distance is <= t_best, so a box that could hold a triangle
-    at exactly t_best (a tie decided by primitive id) is never culled."""
+    A box counts as hit when its entry distance is <= t_best up to the slab test's rounding
+    (FAR_SCALE), so a box that could hold a triangle at exactly t_best (a tie decided by
+    primitive id, e.g. coplanar faces) is never culled."""
     rec = dr.gather(m.ArrayXf, nodes, node, active, shape=(NODE_FLOATS, dr.width(node)))
     out = []
     for side in (0, 1):
@@ -58,7 +61,7 @@ def hit_children(m, nodes, node, ray: Ray, t_best, active):
             t1 = (rec[base + 3 + c] - ray.o[c]) * ray.inv[c]
             tn = dr.maximum(tn, dr.minimum(t0, t1))
             tf = dr.minimum(tf, dr.maximum(t0, t1))
-        hit = active & (tn <= tf * FAR_SCALE) & (tn <= t_best)
+        hit = active & (tn <= tf * FAR_SCALE) & (tn <= t_best * FAR_SCALE)
         out.append((hit, tn))
     links = dr.reinterpret_array(m.UInt32, rec[12]), dr.reinterpret_array(m.UInt32, rec[13])
     return out[0][0], out[1][0], out[0][1], out[1][1], links[0], links[1]
@@ -70,6 +73,7 @@ def f64_from_halves(m, lo, hi):
     return dr.reinterpret_array(m.Float64, bits)
 
 
+@dr.syntax
 def hit_triangle(m, tris, tri, ray: Ray, active):
     """Watertight test against triangle `tri` (leaf order): (hit, t, u, v, original face id).
 
@@ -85,17 +89,33 @@ def hit_triangle(m, tris, tri, ray: Ray, active):
     U = Cx * By - Cy * Bx
     V = Ax * Cy - Ay * Cx
     W = Bx * Ay - By * Ax
-    # An edge function that rounds to exactly 0 is re-evaluated in double precision, which
-    # decides edge and vertex hits consistently between neighbouring triangles.
-    on_edge = (U == 0) | (V == 0) | (W == 0)
+    # A float edge function is off by at most ~8 eps m(P) m(Q), with P, Q the edge's vertices and
+    # m their magnitude before the shear cancels. Below that its sign is unreliable (hits near an
+    # edge, rays grazing the triangle), so it is recomputed from the unrounded shear in double
+    # precision. Decision and value depend only on the edge and the ray, so the two triangles of a
+    # shared edge see the same value (opposite sign): the test stays watertight.
+    shear = dr.abs(ray.sx) + dr.abs(ray.sy)
+    mA = dr.abs(pick(A, ray.kx)) + dr.abs(pick(A, ray.ky)) + dr.abs(Az) * shear
+    mB = dr.abs(pick(B, ray.kx)) + dr.abs(pick(B, ray.ky)) + dr.abs(Bz) * shear
+    mC = dr.abs(pick(C, ray.kx)) + dr.abs(pick(C, ray.ky)) + dr.abs(Cz) * shear
+    unsure_u = dr.abs(U) <= EDGE_ERR * (mB * mC)
+    unsure_v = dr.abs(V) <= EDGE_ERR * (mC * mA)
+    unsure_w = dr.abs(W) <= EDGE_ERR * (mA * mB)
     F64 = m.Float64
+    if active & (unsure_u | unsure_v | unsure_w):
+        o64 = [F64(ray.o[c]) for c in range(3)]
+        d64 = [F64(ray.d[c]) for c in range(3)]
+        dz64 = pick(d64, ray.kz)
+        sx64, sy64 = pick(d64, ray.kx) / dz64, pick(d64, ray.ky) / dz64
 
-    def edge64(px, py, qx, qy):
-        return m.Float(F64(px) * F64(qy) - F64(py) * F64(qx))
-
-    U = dr.select(on_edge, edge64(Cx, Cy, Bx, By), U)
-    V = dr.select(on_edge, edge64(Ax, Ay, Cx, Cy), V)
-    W = dr.select(on_edge, edge64(Bx, By, Ax, Ay), W)
+        def sheared(base):
+            p = [F64(rec[base + c]) - o64[c] for c in range(3)]
+            pz = pick(p, ray.kz)
+            return pick(p, ray.kx) - sx64 * pz, pick(p, ray.ky) - sy64 * pz
+        (ax, ay), (bx, by), (cx, cy) = sheared(0), sheared(3), sheared(6)
+        U = dr.select(unsure_u, m.Float(cx * by - cy * bx), U)
+        V = dr.select(unsure_v, m.Float(ax * cy - ay * cx), V)
+        W = dr.select(unsure_w, m.Float(bx * ay - by * ax), W)
     outside = ((U < 0) | (V < 0) | (W < 0)) & ((U > 0) | (V > 0) | (W > 0))
     det = U + V + W
     rcp = dr.rcp(det)

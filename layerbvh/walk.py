@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import drjit as dr
 
-from .geometry import Ray, hit_children, hit_triangle
+from .geometry import FAR_SCALE, Ray, hit_children, hit_triangle
 from .layout import EXIT_BIT, LEAF_BIT, PAYLOAD_MASK
 
 POP = 0xFFFFFFFF  # link value: "take the next entry from the stack"
@@ -143,8 +143,9 @@ def walk(m, lay: DeviceLayout, s: RayState, stack, cap: int, bounded: bool, any_
             e_link = dr.select(from_global, dr.gather(m.UInt32, stack[0], base + sp, from_global), e_link)
             e_t = dr.select(from_global, dr.gather(m.Float, stack[1], base + sp, from_global), e_t)
         empty = is_pop & ~from_local & ~from_global
-        # An entry farther than the closest hit found since it was pushed is culled.
-        popped = dr.select((from_local | from_global) & (e_t <= t_best), e_link, POP)
+        # An entry farther than the closest hit found since it was pushed is culled (with the slab
+        # test's rounding margin, as in hit_children: ties must stay reachable).
+        popped = dr.select((from_local | from_global) & (e_t <= t_best * FAR_SCALE), e_link, POP)
 
         # Node: continue with the nearer child, push the farther one when both are hit.
         right_first = hit_r & (~hit_l | (t_r < t_l))

@@ -200,3 +200,13 @@ def test_all_rays_invalid_is_fine():
     for mode in layerbvh.MODES:
         assert np.all(bvh.trace(o, o, mode=mode).prim == layerbvh.MISS)
         assert not bvh.occluded(o, o, 1.0, mode=mode).any()
+
+
+def test_no_rays_is_fine():
+    v, f = _soup(50)
+    bvh = layerbvh.build(v, f)
+    none = np.zeros((0, 3), np.float32)
+    for mode in layerbvh.MODES:
+        h = bvh.trace(none, none, mode=mode)
+        assert h.prim.shape == (0,) and h.t.shape == (0,)
+        assert bvh.occluded(none, none, 1.0, mode=mode).shape == (0,)
