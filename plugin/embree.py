@@ -92,8 +92,8 @@ def disagreements(v: np.ndarray, f: np.ndarray, o: np.ndarray, d: np.ndarray, pr
 def exact_hit(v: np.ndarray, f: np.ndarray, prim: np.ndarray, o: np.ndarray, d: np.ndarray, eps: float = 1e-9):
     """Does each ray really hit triangle `prim`, for the exact float32 inputs? Float64
     Moeller-Trumbore: (status, t) with status 1 (hit), 0 (miss) or -1 (undecidable: within `eps`
-    of an edge in barycentric terms, or the ray lies in the triangle's plane). Misses (prim =
-    0xFFFFFFFF) get status 0 and t = inf."""
+    of an edge in barycentric terms, the ray lies in the triangle's plane, or starts on the
+    triangle). Misses (prim = 0xFFFFFFFF) get status 0 and t = inf."""
     status = np.zeros(len(prim), np.int8)
     t = np.full(len(prim), np.inf)
     has = prim != MISS
@@ -112,8 +112,11 @@ def exact_hit(v: np.ndarray, f: np.ndarray, prim: np.ndarray, o: np.ndarray, d: 
         w = np.einsum("ij,ij->i", d64, qv) / det
         tt = np.einsum("ij,ij->i", e2, qv) / det
     bary = np.stack([1 - u - w, u, w])
-    inside = (bary > eps).all(0) & (tt > 0)
-    outside = (bary < -eps).any(0) | (tt < 0)
+    # A ray starting on the triangle (t = 0 up to rounding) may be called a hit or a miss.
+    size = (np.abs(tv).max(1) + np.abs(e1).max(1) + np.abs(e2).max(1)) / np.linalg.norm(d64, axis=1)
+    at_origin = np.abs(tt) <= eps * size
+    inside = (bary > eps).all(0) & (tt > 0) & ~at_origin
+    outside = ((bary < -eps).any(0) | (tt < 0)) & ~at_origin
     # Parallel: in the plane (undecidable) or beside it (a miss).
     n = np.cross(e1, e2)
     off_plane = np.abs(np.einsum("ij,ij->i", n, tv)) > 1e-12 * np.linalg.norm(n, axis=1) * (np.abs(tv).max(1) + 1)
