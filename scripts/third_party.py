@@ -134,24 +134,11 @@ def _one_line(e: BaseException) -> str:
     return (msg or type(inner).__name__)[:300]
 
 
-def exact_t(v, f, prim, o, d):
-    """Distance along each ray to the plane of triangle `prim`, in float64 (Moeller-Trumbore)."""
-    import numpy as np
-    a, b, c = (v[f[prim, k]].astype(np.float64) for k in range(3))
-    e1, e2, tv = b - a, c - a, o.astype(np.float64) - a
-    pv = np.cross(d.astype(np.float64), e2)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.einsum("ij,ij->i", e2, np.cross(tv, e1)) / np.einsum("ij,ij->i", e1, pv)
-
-
 def ray_check(tracer, n: int, seed: int) -> dict | None:
     """Closest hits of `n` random rays through the scene's triangles, ours against Embree: how
-    many rays get another triangle, and how many of those are ties, where both triangles lie at
-    the same distance (float64) up to float32 resolution of the coordinates: shared edges and
-    (near-)coplanar overlapping triangles, where either answer is right (we take the one whose
-    float t is smaller, then the lower primitive id)."""
-    import numpy as np
-    from layerbvh import MISS
+    many rays get another triangle, and how many of those are ties (`embree.disagreements`):
+    shared edges and (near-)coplanar overlapping triangles, where either answer is right (we take
+    the one whose float t is smaller, then the lower primitive id)."""
     from layerbvh_mitsuba import embree
     from scripts import meshes
     g = tracer.geometry
@@ -160,17 +147,10 @@ def ray_check(tracer, n: int, seed: int) -> dict | None:
     o, d = meshes.incoherent_rays(g.vertices, n, seed)
     _, p_e = embree.intersect(embree.scene_from_mesh(g.vertices, g.faces), o, d)
     h = tracer.bvh.trace(o, d, mode="per_ray", stats=False)
-    other = np.nonzero(p_e != h.prim)[0]
-    both = other[(p_e[other] != MISS) & (h.prim[other] != MISS)]
-    t_e = exact_t(g.vertices, g.faces, p_e[both], o[both], d[both])
-    t_o = exact_t(g.vertices, g.faces, h.prim[both], o[both], d[both])
-    # Equal up to float32 resolution (8 ulps) of the coordinates involved: below that, which
-    # of two (near-)coplanar triangles is nearer is decided by rounding, in Embree as in ours.
-    p = o[both] + t_e[:, None] * d[both]
-    scale = np.maximum(np.abs(o[both]).max(1), np.abs(p).max(1)) / np.linalg.norm(d[both], axis=1)
-    tie = np.abs(t_e - t_o) <= 8 * 2.0 ** -24 * scale
-    return {"rays": n, "other_prim": int(len(other)), "ties": int(tie.sum()),
-            "tie_other_shape": int((g.tri_shape[p_e[both][tie]] != g.tri_shape[h.prim[both][tie]]).sum())}
+    dis = embree.disagreements(g.vertices, g.faces, o, d, h.prim, p_e)
+    tie = dis["tie_idx"]
+    return {"rays": n, "other_prim": dis["ties"] + dis["other"] + dis["hit_miss"], "ties": dis["ties"],
+            "tie_other_shape": int((g.tri_shape[p_e[tie]] != g.tri_shape[h.prim[tie]]).sum())}
 
 
 def run_worker(args) -> dict:
