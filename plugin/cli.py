@@ -35,6 +35,21 @@ def _parser() -> argparse.ArgumentParser:
     c = sub.add_parser("compare", help="A/B: stock path (Embree) vs layerbvh, with metrics and an HTML report")
     common(c)
     c.add_argument("--out", required=True, help="output folder")
+    v = sub.add_parser("converge", help="error against run time: stock and layerbvh configurations at 1, 2, 4, ... spp "
+                                        "within a time budget, scored against a cached stock reference")
+    v.add_argument("scene", help="Mitsuba 3 XML scene")
+    v.add_argument("--budget", type=float, required=True, help="seconds of rendering per configuration "
+                   "(BVH build, compile and the reference are timed separately)")
+    v.add_argument("--out", required=True, help="output folder (convergence.csv/.json/.png/.md)")
+    v.add_argument("--configs", default="stock,per_ray,layer_sorted:4",
+                   help="comma list: stock, per_ray, layer_sorted:H, layer_unsorted:H (default %(default)s)")
+    v.add_argument("--ref-spp", type=int, default=4096, help="spp of the stock reference (default %(default)s)")
+    v.add_argument("--max-spp", type=int, help="stop doubling here even within budget (default ref spp / 16)")
+    v.add_argument("--res", type=int, nargs=2, metavar=("W", "H"), help="film resolution (default: the scene's)")
+    v.add_argument("--leaf-size", type=int, default=4)
+    v.add_argument("--cache", help="reference cache folder (default $XDG_CACHE_HOME/layerbvh/references)")
+    v.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb, cuda_ad_rgb)")
+    v.add_argument("--no-progress", action="store_true")
     return p
 
 
@@ -45,6 +60,10 @@ class CliError(Exception):
 def _check_args(args):
     if not Path(args.scene).is_file():
         raise CliError(f"scene file not found: {args.scene}")
+    if args.command == "converge":
+        if args.res is not None and min(args.res) < 1:
+            raise CliError(f"--res must be positive, got {args.res[0]} {args.res[1]}")
+        return
     if args.spp is not None and args.spp < 1:
         raise CliError(f"--spp must be >= 1, got {args.spp}")
     if args.res is not None and min(args.res) < 1:
@@ -197,6 +216,10 @@ def main(argv=None) -> int:
         import layerbvh_mitsuba  # noqa: F401  (registers the integrator)
         from .adapter import UnsupportedShapeError
         try:
+            if args.command == "converge":
+                from .converge import run as converge
+                converge(mi, args)
+                return 0
             return cmd_render(mi, args) if args.command == "render" else cmd_compare(mi, args)
         except UnsupportedShapeError as e:
             raise CliError(str(e)) from None

@@ -1,0 +1,403 @@
+"""Error against run time: each configuration renders at 1, 2, 4, ... spp within a time budget and is scored against a cached stock reference."""
+from __future__ import annotations
+
+import csv
+import hashlib
+import io
+import json
+import math
+import os
+import re
+import sys
+import time
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import atomic, metrics
+
+REFERENCE_SEED = 100_000  # the reference's passes use seeds 791.9M + k, far from any config's
+EXTRAPOLATION_SLACK = 1.25  # a fit read within 25% of the rendered time range counts as measured
+MIN_FIT_SPP = 4  # below this, fixed per-render overhead bends the time axis; fits skip it when they can
+METRICS = ("rel_mse", "flip", "delta_e2000")
+CSV_COLUMNS = ("config", "spp", "seconds", "rel_mse", "flip", "delta_e2000", "seed")
+
+
+class ConvergeError(ValueError):
+    """Bad input to `layerbvh converge`, reported as one line."""
+
+
+# -- configurations ---------------------------------------------------------------------------------
+
+
+@dataclass
+class Config:
+    """One renderer under test: stock `path` (Embree) or the layerbvh integrator in one traversal mode."""
+
+    name: str
+    traversal: str | None = None  # None: stock path
+    treelet_height: int = 4
+    build_s: float = 0.0
+    first_render_s: float = 0.0
+    compile_s: float = 0.0
+    points: list = field(default_factory=list)
+    fit: dict = field(default_factory=dict)
+
+    @property
+    def stock(self) -> bool:
+        return self.traversal is None
+
+
+def parse_configs(text: str) -> list[Config]:
+    """`stock,per_ray,layer_sorted:4,layer_sorted:6`: names with an optional treelet height."""
+    import layerbvh
+    out, seen = [], set()
+    for item in (s.strip() for s in text.split(",")):
+        if not item:
+            continue
+        mode, _, height = item.partition(":")
+        if mode == "stock":
+            if height:
+                raise ConvergeError(f"--configs: 'stock' takes no treelet height, got {item!r}")
+            cfg = Config("stock")
+        elif mode in layerbvh.MODES:
+            try:
+                h = int(height) if height else 4
+            except ValueError:
+                raise ConvergeError(f"--configs: treelet height in {item!r} is not an integer") from None
+            if not 1 <= h <= 64:
+                raise ConvergeError(f"--configs: treelet height in {item!r} must be in [1, 64]")
+            cfg = Config(mode if mode == "per_ray" else f"{mode}:{h}", traversal=mode, treelet_height=h)
+        else:
+            raise ConvergeError(f"--configs: unknown configuration {item!r}; use stock or one of "
+                                f"{', '.join(layerbvh.MODES)} (optionally :HEIGHT)")
+        if cfg.name in seen:
+            raise ConvergeError(f"--configs: {cfg.name!r} is listed twice")
+        seen.add(cfg.name)
+        out.append(cfg)
+    if not out:
+        raise ConvergeError("--configs is empty")
+    return out
+
+
+# -- the reference, cached by content ---------------------------------------------------------------
+
+
+def _substitute(value: str, defaults: dict) -> str:
+    return re.sub(r"\$(\w+)", lambda m: str(defaults.get(m.group(1), m.group(0))), value)
+
+
+def scene_files(scene: Path, _seen=None) -> list[Path]:
+    """The XML file and every file it references (meshes, textures, included XML, recursively)."""
+    seen = _seen if _seen is not None else set()
+    scene = scene.resolve()
+    if scene in seen:
+        return []
+    seen.add(scene)
+    try:
+        root = ET.parse(scene).getroot()
+    except ET.ParseError as e:
+        raise ConvergeError(f"scene {scene}: not valid XML ({e})") from None
+    defaults = {d.get("name"): d.get("value") for d in root.iter("default")}
+    files = [scene]
+    for el in root.iter():
+        ref = el.get("filename") if el.tag == "include" else (
+            el.get("value") if el.get("name") == "filename" else None)
+        if ref is None:
+            continue
+        path = (scene.parent / _substitute(ref, defaults)).resolve()
+        if not path.is_file():
+            raise ConvergeError(f"scene {scene.name}: referenced file not found: {ref}")
+        files += scene_files(path, seen) if path.suffix == ".xml" else [path]
+    return files
+
+
+def reference_key(scene: Path, settings: dict) -> str:
+    """SHA-256 over the bytes of the scene and all its files plus the render settings: any edit
+    to a mesh, a texture or the XML gives a new key, so a stale reference is never reused."""
+    h = hashlib.sha256()
+    for path in scene_files(scene):
+        h.update(path.name.encode() + b"\0")
+        h.update(hashlib.sha256(path.read_bytes()).digest())
+    h.update(json.dumps(settings, sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def default_cache_dir() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "layerbvh" / "references"
+
+
+def reference(mi, scene, scene_path: Path, settings: dict, cache: Path, progress: bool) -> tuple[np.ndarray, dict]:
+    """The stock reference image: read from the cache when its key matches, else rendered and stored."""
+    from .cli import render_passes
+    key = reference_key(scene_path, settings)
+    exr, meta = cache / f"{key[:24]}.exr", cache / f"{key[:24]}.json"
+    if exr.is_file() and meta.is_file():
+        info = json.loads(meta.read_text())
+        if info.get("key") == key:
+            img = np.array(mi.Bitmap(str(exr)), np.float32)[:, :, :3]
+            return img, {**info, "path": str(exr), "cached": True}
+    stock = mi.load_dict({"type": "path", **settings["integrator"]})
+    img, secs = render_passes(mi, scene, stock, settings["ref_spp"], REFERENCE_SEED, "reference (stock)", progress)
+    if not np.isfinite(img).all():
+        raise ConvergeError("the stock reference has NaN/Inf pixels; nothing cached")
+    info = {"key": key, "settings": settings, "render_s": secs, "scene": str(scene_path)}
+    with atomic.atomic_path(exr) as tmp:
+        mi.Bitmap(img).write(tmp)
+    atomic.write_text(meta, json.dumps(info, indent=1))  # written last: its presence means the EXR is whole
+    return img, {**info, "path": str(exr), "cached": False}
+
+
+# -- the measurement --------------------------------------------------------------------------------
+
+
+def _seed(config_index: int, level: int) -> int:
+    # Independent of each other, of the warm-up (level -1) and of the reference.
+    return 1 + 1000 * config_index + (level + 1)
+
+
+def _integrator(mi, cfg: Config, props: dict, leaf_size: int):
+    if cfg.stock:
+        return mi.load_dict({"type": "path", **props})
+    return mi.load_dict({"type": "layerbvh", "traversal": cfg.traversal, "treelet_height": cfg.treelet_height,
+                         "leaf_size": leaf_size, **props})
+
+
+def _render(mi, scene, integ, spp: int, seed: int) -> tuple[np.ndarray, float, float]:
+    """(image, seconds without kernel compilation, seconds of kernel compilation).
+
+    Dr.Jit compiles a kernel the first time it sees it; a render that meets a new one pays for
+    the LLVM/NVRTC compile inside its wall time. Dr.Jit's kernel history reports each launch's
+    backend compile time, so it is taken out of the render time and reported on its own."""
+    import drjit as dr
+
+    from .cli import render_passes
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()  # drop what came before
+    try:
+        img, secs = render_passes(mi, scene, integ, spp, seed, "", False)
+        history = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    compile_s = sum(k.get("backend_time", 0.0) for k in history if not k.get("cache_hit")) / 1e3  # ms
+    return img, max(secs - compile_s, 0.0), compile_s
+
+
+def run_config(mi, scene, cfg: Config, index: int, props: dict, ref: np.ndarray, budget: float,
+               max_spp: int, leaf_size: int, bar) -> None:
+    """Render at doubling spp while the next render (predicted: twice the last) fits in the budget."""
+    integ = _integrator(mi, cfg, props, leaf_size)
+    if not cfg.stock:
+        cfg.build_s = integ.tracer(scene).build_s  # built once here, outside every timed render
+    # Warm-up with its own seed: most kernels compile here; any later compile is subtracted too.
+    _, secs, cfg.compile_s = _render(mi, scene, integ, 1, _seed(index, -1))
+    cfg.first_render_s = secs + cfg.compile_s
+    spent, spp, level = 0.0, 1, 0
+    while spp <= max_spp:
+        img, secs, compile_s = _render(mi, scene, integ, spp, _seed(index, level))
+        cfg.compile_s += compile_s
+        m = metrics.compare_images(ref, img)
+        cfg.points.append({"config": cfg.name, "spp": spp, "seconds": secs, "compile_s": compile_s,
+                           "rel_mse": m["rel_mse"],
+                           "flip": m["flip_mean"], "delta_e2000": m["delta_e2000_mean"], "seed": _seed(index, level)})
+        spent += secs
+        bar.update(1)
+        bar.set_postfix_str(f"{cfg.name} {spp} spp {secs:.2f} s")
+        if spent + 2 * secs > budget:
+            break
+        spp, level = spp * 2, level + 1
+
+
+# -- fits and tables --------------------------------------------------------------------------------
+
+
+def _fit_points(points: list, axis: str) -> list:
+    if axis == "spp":  # error against samples has no overhead term: every point counts
+        return points
+    big = [p for p in points if p["spp"] >= MIN_FIT_SPP]
+    return big if len(big) >= 3 else points
+
+
+def loglog_fit(x, y) -> tuple[float, float] | None:
+    """(intercept, slope) of log y = a + b log x by least squares; None with fewer than 2 points."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    ok = (x > 0) & (y > 0)
+    if ok.sum() < 2 or np.ptp(np.log(x[ok])) == 0:
+        return None
+    b, a = np.polyfit(np.log(x[ok]), np.log(y[ok]), 1)
+    return float(a), float(b)
+
+
+def fits(cfg: Config) -> dict:
+    """Fitted power laws per metric, against spp and against seconds."""
+    out = {}
+    for m in METRICS:
+        for axis in ("spp", "seconds"):
+            pts = _fit_points(cfg.points, axis)
+            f = loglog_fit([p[axis] for p in pts], [p[m] for p in pts])
+            out[f"{m}_vs_{axis}"] = None if f is None else {"intercept": f[0], "slope": f[1]}
+    return out
+
+
+def equal_time_error_table(configs: list[Config]) -> dict:
+    """relMSE at a common time and time to reach stock's error, both from each config's fitted
+    power law (relMSE vs seconds) and relative to stock when stock is among the configs.
+
+    Common time: the longest render every configuration reached. Equal error: the relMSE stock
+    reached in its longest render (or the first config's, without stock). A value outside the
+    times a configuration actually rendered is an extrapolation of its fit and flagged as one."""
+    base = next((c for c in configs if c.stock), configs[0])
+    t_common = min(max(p["seconds"] for p in c.points) for c in configs)
+    e_target = min(base.points, key=lambda p: -p["seconds"])["rel_mse"]
+    rows = {}
+    for c in configs:
+        f = c.fit["rel_mse_vs_seconds"]
+        if f is None or f["slope"] >= 0:
+            rows[c.name] = {"rel_mse_at_equal_time": None, "seconds_to_equal_error": None}
+            continue
+        a, b = f["intercept"], f["slope"]
+        t_eq = math.exp((math.log(e_target) - a) / b)
+        lo, hi = min(p["seconds"] for p in c.points), max(p["seconds"] for p in c.points)
+        inside = (lambda t: lo / EXTRAPOLATION_SLACK <= t <= hi * EXTRAPOLATION_SLACK)
+        rows[c.name] = {"rel_mse_at_equal_time": math.exp(a + b * math.log(t_common)),
+                        "seconds_to_equal_error": t_eq,
+                        "equal_time_extrapolated": not inside(t_common),
+                        "equal_error_extrapolated": not inside(t_eq)}
+    ref = rows[base.name]
+    for r in rows.values():
+        for k, rel in (("rel_mse_at_equal_time", "error_vs_base"), ("seconds_to_equal_error", "time_vs_base")):
+            r[rel] = r[k] / ref[k] if r[k] is not None and ref[k] else None
+    return {"base": base.name, "equal_time_s": t_common, "equal_error_rel_mse": e_target, "rows": rows}
+
+
+def _g(x, spec=".3g"):
+    return "–" if x is None else format(x, spec)
+
+
+def table_markdown(configs: list[Config], table: dict) -> str:
+    base = table["base"]
+    lines = [f"relMSE at equal time ({table['equal_time_s']:.3g} s per render) and time to reach "
+             f"{base}'s relMSE {table['equal_error_rel_mse']:.3g}, from each configuration's fitted "
+             f"log-log line (relMSE vs seconds); ratios are against {base}. Render times exclude "
+             f"kernel compilation (Dr.Jit's kernel history), which is listed with the BVH build. "
+             f"* = extrapolated beyond the times that configuration rendered.", "",
+             "| config | build s | compile s | spp reached | slope vs spp | relMSE at equal time | × " + base
+             + " | seconds to equal error | × " + base + " |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for c in configs:
+        r = table["rows"][c.name]
+        slope = c.fit["rel_mse_vs_spp"]
+        lines.append(f"| {c.name} | {c.build_s:.2f} | {c.compile_s:.2f} | {c.points[-1]['spp']} "
+                     f"| {_g(slope and slope['slope'], '.2f')} | {_g(r['rel_mse_at_equal_time'])} "
+                     f"| {_g(r['error_vs_base'], '.2f')}{'*' if r.get('equal_time_extrapolated') else ''} "
+                     f"| {_g(r['seconds_to_equal_error'])} "
+                     f"| {_g(r['time_vs_base'], '.2f')}{'*' if r.get('equal_error_extrapolated') else ''} |")
+    return "\n".join(lines) + "\n"
+
+
+# -- outputs ----------------------------------------------------------------------------------------
+
+
+def csv_text(configs: list[Config]) -> str:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, lineterminator="\n")
+    w.writeheader()
+    for c in configs:
+        for p in c.points:
+            w.writerow({k: p[k] for k in CSV_COLUMNS})
+    return buf.getvalue()
+
+
+def plot_png(configs: list[Config], title: str) -> bytes:
+    """Log-log error vs seconds, one line per configuration, with the ideal Monte Carlo slopes."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
+    labels = {"rel_mse": ("relMSE", -1.0), "flip": ("mean ꟻLIP", -0.5), "delta_e2000": ("mean ΔE2000", -0.5)}
+    for ax, m in zip(axes, METRICS):
+        name, ideal = labels[m]
+        for c in configs:
+            ax.plot([p["seconds"] for p in c.points], [p[m] for p in c.points], "o-", label=c.name, ms=4)
+        # The ideal rate through the slowest-converging first point, for reference.
+        anchor = max((c.points[0] for c in configs), key=lambda p: p[m])
+        t = np.array([min(p["seconds"] for c in configs for p in c.points),
+                      max(p["seconds"] for c in configs for p in c.points)])
+        ax.plot(t, anchor[m] * (t / anchor["seconds"]) ** ideal, "k--", lw=1, label=f"slope {ideal:g}")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("render time per image (s)")
+        ax.set_ylabel(name)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def write_outputs(out: Path, configs: list[Config], doc: dict, table_md: str, title: str) -> None:
+    """Every file written whole (temporary sibling, then rename); the JSON last."""
+    atomic.write_text(out / "convergence.csv", csv_text(configs))
+    atomic.write_bytes(out / "convergence.png", plot_png(configs, title))
+    atomic.write_text(out / "convergence.md", f"# Error against run time\n\n{title}\n\n{table_md}")
+    atomic.write_text(out / "convergence.json", json.dumps(doc, indent=1))
+
+
+# -- the command ------------------------------------------------------------------------------------
+
+
+def run(mi, args) -> dict:
+    """`layerbvh converge`: returns the JSON document it writes."""
+    from tqdm import tqdm
+
+    from .cli import load_scene, path_props
+    configs = parse_configs(args.configs)
+    if args.budget <= 0:
+        raise ConvergeError(f"--budget must be > 0 seconds, got {args.budget}")
+    if args.ref_spp < 16:
+        raise ConvergeError(f"--ref-spp must be >= 16, got {args.ref_spp}")
+    max_spp = args.max_spp or max(1, args.ref_spp // 16)
+    if max_spp > args.ref_spp // 4:
+        raise ConvergeError(f"--max-spp {max_spp} is too close to --ref-spp {args.ref_spp}: the reference's own "
+                            f"noise would bias the error (keep max spp <= ref spp / 4)")
+    scene_path = Path(args.scene)
+    t0 = time.perf_counter()
+    scene = load_scene(mi, str(scene_path), args.res)
+    load_s = time.perf_counter() - t0
+    props = path_props(mi, scene)
+    size = [int(x) for x in scene.sensors()[0].film().crop_size()]
+    settings = {"ref_spp": args.ref_spp, "resolution": size, "variant": mi.variant(), "mitsuba": mi.__version__,
+                "integrator": props, "seed": REFERENCE_SEED}
+    progress = not args.no_progress
+    ref, ref_info = reference(mi, scene, scene_path, settings, Path(args.cache or default_cache_dir()), progress)
+    if progress:
+        print(f"reference: {'reused' if ref_info['cached'] else 'rendered'} {ref_info['path']}", file=sys.stderr)
+    renders = len(configs) * (int(math.log2(max_spp)) + 1)
+    with tqdm(total=renders, desc="converge", unit="render", disable=not progress, file=sys.stderr) as bar:
+        for i, cfg in enumerate(configs):
+            run_config(mi, scene, cfg, i, props, ref, args.budget, max_spp, args.leaf_size, bar)
+            cfg.fit = fits(cfg)
+            bar.total = bar.n + (len(configs) - i - 1) * (int(math.log2(max_spp)) + 1)
+    table = equal_time_error_table(configs)
+    title = (f"{scene_path.name}: {size[0]}x{size[1]}, budget {args.budget:g} s per configuration, "
+             f"reference stock path at {args.ref_spp} spp, {mi.variant()}")
+    doc = {
+        "scene": str(scene_path), "resolution": size, "variant": mi.variant(), "budget_s": args.budget,
+        "max_spp": max_spp, "scene_load_s": load_s, "integrator": props,
+        "reference": {k: ref_info[k] for k in ("path", "key", "cached", "render_s")} | {"spp": args.ref_spp},
+        "configs": [{"name": c.name, "traversal": c.traversal or "stock (Embree)", "treelet_height":
+                     None if c.stock or c.traversal == "per_ray" else c.treelet_height,
+                     "build_s": c.build_s, "first_render_s": c.first_render_s, "compile_s": c.compile_s,
+                     "fit": c.fit, "points": c.points} for c in configs],
+        "table": table,
+    }
+    table_md = table_markdown(configs, table)
+    write_outputs(Path(args.out), configs, doc, table_md, title)
+    print(table_md)
+    return doc
