@@ -16,6 +16,16 @@ from .walk import NO_HIT, DeviceLayout
 from .wavefront import MODES, TAIL_RAYS, Results, trace as _trace
 
 MISS = 0xFFFFFFFF
+# Rays traced per batch. The layer modes' work memory is about batch x (tree depth x 8 B of
+# entry stack + 2 x 76 B of ray state + 40 B in/out); 1M rays of a depth-40 tree: ~550 MB.
+BATCH_RAYS = 1 << 20
+AUTO = "auto"
+TRACE_MODES = MODES + (AUTO,)
+# auto: below this many rays a batch goes per_ray without asking (a few rays per treelet cannot
+# repay a sort and a launch per step); above it the first batch of each size class is timed both
+# ways on up to AUTO_SAMPLE_RAYS of its rays and the faster mode is kept for that class.
+AUTO_MIN_RAYS = 1 << 16
+AUTO_SAMPLE_RAYS = 1 << 18
 
 
 @dataclass
@@ -52,13 +62,15 @@ class BVHStats:
 class LayerBVH:
     """A binned-SAH BVH over triangles, laid out as a Layer BVH (see layout.LayerLayout)."""
 
-    def __init__(self, vertices, faces, treelet_height=4, leaf_size=4, backend=None):
+    def __init__(self, vertices, faces, treelet_height=4, leaf_size=4, backend=None, batch_rays=BATCH_RAYS):
         treelet_height = check_param("treelet_height", treelet_height, 1, 64)
+        self.batch_rays = check_param("batch_rays", batch_rays, 1, 1 << 31)
         leaf_size = check_param("leaf_size", leaf_size, 1, 64)
         v, f = check_mesh(vertices, faces)
         self.vertices, self.faces = v, f
         self.backend = backend or be.default_backend()
         self.tail_rays = TAIL_RAYS
+        self.auto_choices = {}  # (query, hint, size class) -> {"mode", "seconds"}: auto's decisions
         self.m = be.module(self.backend)
         t0 = time.perf_counter()
         tri = v[f] if len(f) else np.zeros((0, 3, 3), np.float32)
@@ -132,25 +144,79 @@ class LayerBVH:
         valid = finite & nonzero & ~dr.isnan(tm) & (tm > 0)
         return oj, dj, tm, valid, n, back
 
-    def _run(self, origins, directions, tmax, mode, any_hit, stats=True):
-        if mode not in MODES:
-            raise ValueError(f"mode must be one of {', '.join(MODES)}; got {mode!r}")
+    def _auto_mode(self, oj, dj, tm, valid, n, any_hit, hint) -> str:
+        """The faster of per_ray and layer_sorted for this kind of batch, measured once per
+        (closest/any hit, caller's hint such as 'camera', size class = bit length of the ray count).
+
+        Timing both on real rays captures what a rule cannot: scene size against the caches,
+        ray coherence, CPU or GPU. Hits do not depend on the choice (every mode is exact and
+        breaks ties by primitive id), only the time does."""
+        if self.device is None or n < AUTO_MIN_RAYS or self.stats.treelets <= 1:
+            return "per_ray"
+        key = ("any_hit" if any_hit else "closest_hit", hint, n.bit_length())
+        known = self.auto_choices.get(key)
+        if known is not None:
+            return known["mode"]
+        k = min(n, AUTO_SAMPLE_RAYS)
+        idx = dr.arange(self.m.UInt32, k)  # leading rays: neighbours, as in the batch itself
+        take = (lambda x: dr.gather(type(x), x, idx))
+        sample = ([take(c) for c in oj], [take(c) for c in dj], take(tm), take(valid))
+        seconds = {}
+        for rep in range(3):  # the first round compiles the kernels and is not counted
+            for mode in ("per_ray", "layer_sorted"):
+                dr.sync_thread()
+                t0 = time.perf_counter()
+                res, _ = _trace(self.m, self.device, *sample, mode, any_hit, self.tail_rays, count_work=False)
+                dr.eval(res.t, res.tri)
+                dr.sync_thread()
+                if rep:
+                    seconds[mode] = min(seconds.get(mode, dr.inf), time.perf_counter() - t0)
+        choice = min(seconds, key=seconds.get)
+        self.auto_choices[key] = {"mode": choice, "seconds": seconds, "sample_rays": k}
+        return choice
+
+    def _run(self, origins, directions, tmax, mode, any_hit, stats=True, hint=""):
+        if mode not in TRACE_MODES:
+            raise ValueError(f"mode must be one of {', '.join(TRACE_MODES)}; got {mode!r}")
         oj, dj, tm, valid, n, back = self._rays(origins, directions, tmax)
         m = self.m
         t0 = time.perf_counter()
+        chosen = None
+        if mode == AUTO:
+            chosen = mode = self._auto_mode(oj, dj, tm, valid, n, any_hit, hint)
         if self.device is None or n == 0:
             res, st = Results(m, n), TraceStats(mode=mode, rays=n)
-        else:
+        elif n <= self.batch_rays:
             res, st = _trace(m, self.device, oj, dj, tm, valid, mode, any_hit, self.tail_rays, count_work=stats)
+        else:
+            res, st = self._run_batches(oj, dj, tm, valid, mode, any_hit, stats)
         if stats:
             st.finish(*(int(dr.sum(w)[0]) if n else 0 for w in res.work))
         st.time_total_s = time.perf_counter() - t0
+        if chosen is not None:
+            st.mode = f"{AUTO}:{chosen}"
         return res, st, back
 
-    def trace(self, origins, directions, tmax=None, mode="layer_sorted", stats=True) -> Hits:
+    def _run_batches(self, oj, dj, tm, valid, mode, any_hit, stats):
+        """Trace `batch_rays` rays at a time: the work arrays (entry stacks, queues, ray state
+        copies) scale with the batch, not with the ray count, so peak memory is bounded."""
+        m, n = self.m, dr.width(tm)
+        res, st = Results(m, n), TraceStats(mode=mode, rays=n, batches=0)
+        for start in range(0, n, self.batch_rays):
+            idx = dr.arange(m.UInt32, start, min(n, start + self.batch_rays))
+            take = (lambda x: dr.gather(type(x), x, idx))
+            part, part_st = _trace(m, self.device, [take(c) for c in oj], [take(c) for c in dj], take(tm),
+                                   take(valid), mode, any_hit, self.tail_rays, count_work=stats)
+            res.place(part, idx)
+            dr.eval(res.t, res.u, res.v, res.tri, res.work)
+            st.absorb(part_st)
+        return res, st
+
+    def trace(self, origins, directions, tmax=None, mode="layer_sorted", stats=True, hint="") -> Hits:
         """Closest hits. With stats=False the kernels skip the work counters (hits.stats then
-        holds steps and times only)."""
-        res, stats, back = self._run(origins, directions, tmax, mode, any_hit=False, stats=stats)
+        holds steps and times only). `mode="auto"` picks per batch (see _auto_mode); `hint`
+        names the kind of rays (e.g. 'camera', 'bounce') so auto decides for each kind apart."""
+        res, stats, back = self._run(origins, directions, tmax, mode, any_hit=False, stats=stats, hint=hint)
         m = self.m
         if stats.rays == 0:  # empty arrays as they are (Dr.Jit cannot compare them with a literal)
             return Hits(t=back(res.t), prim=back(res.tri), u=back(res.u), v=back(res.v), stats=stats)
@@ -165,13 +231,16 @@ class LayerBVH:
         v = dr.select(hit, res.v, 0.0)
         return Hits(t=back(t), prim=back(prim), u=back(u), v=back(v), stats=stats)
 
-    def occluded(self, origins, directions, tmax=None, mode="layer_sorted", stats=True):
+    def occluded(self, origins, directions, tmax=None, mode="layer_sorted", stats=True, hint=""):
         """True for rays with any hit at 0 < t < tmax (the traversal stops at the first one)."""
-        res, stats, back = self._run(origins, directions, tmax, mode, any_hit=True, stats=stats)
+        res, stats, back = self._run(origins, directions, tmax, mode, any_hit=True, stats=stats, hint=hint)
         self.last_occluded_stats = stats
         return back(res.tri != NO_HIT if stats.rays else dr.zeros(self.m.Bool, 0))
 
 
-def build(vertices, faces, treelet_height: int = 4, leaf_size: int = 4, backend: str | None = None) -> LayerBVH:
-    """Build a Layer BVH over a triangle mesh: vertices (V, 3) float, faces (F, 3) int."""
-    return LayerBVH(vertices, faces, treelet_height=treelet_height, leaf_size=leaf_size, backend=backend)
+def build(vertices, faces, treelet_height: int = 4, leaf_size: int = 4, backend: str | None = None,
+          batch_rays: int = BATCH_RAYS) -> LayerBVH:
+    """Build a Layer BVH over a triangle mesh: vertices (V, 3) float, faces (F, 3) int.
+    `batch_rays` bounds how many rays one trace call processes at once (peak memory)."""
+    return LayerBVH(vertices, faces, treelet_height=treelet_height, leaf_size=leaf_size, backend=backend,
+                    batch_rays=batch_rays)

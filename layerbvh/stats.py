@@ -31,6 +31,17 @@ class TraceStats:
     time_total_s: float = 0.0
     work_bytes: int = 0
     tail_rays: int = 0  # rays finished by one per-ray kernel after the last sorted step
+    batches: int = 1  # ray batches traced one after another (LayerBVH.batch_rays bounds memory)
+
+    def absorb(self, other: "TraceStats") -> None:
+        """Add the figures of one more ray batch traced with the same mode."""
+        self.steps += other.steps
+        self.active_per_step += other.active_per_step
+        for name in ("time_sort_s", "time_traverse_s", "time_other_s"):
+            setattr(self, name, getattr(self, name) + getattr(other, name))
+        self.tail_rays += other.tail_rays
+        self.work_bytes = max(self.work_bytes, other.work_bytes)  # batches run one after another
+        self.batches += 1
 
     def finish(self, inner: int, leaves: int, tris: int, iters: int) -> None:
         self.inner_nodes, self.leaves, self.triangles, self.iterations = inner, leaves, tris, iters

@@ -40,6 +40,12 @@ class Results:
         self.tri = dr.full(m.UInt32, NO_HIT, n)
         self.work = [dr.zeros(m.UInt32, n) for _ in range(4)]  # inner, leaf, tri, iterations
 
+    def place(self, other: "Results", idx) -> None:
+        """Copy the results of a sub-batch to the rays `idx`."""
+        for dst, src in zip((self.t, self.u, self.v, self.tri, *self.work),
+                            (other.t, other.u, other.v, other.tri, *other.work)):
+            dr.scatter(dst, src, idx)
+
     def write(self, s: RayState, mask):
         for dst, src in ((self.t, s.t), (self.u, s.u), (self.v, s.v), (self.tri, s.tri)):
             dr.scatter(dst, src, s.slot, mask)

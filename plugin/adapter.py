@@ -83,7 +83,7 @@ class SceneTracer:
 
     Built once per scene; every query returns Mitsuba types (PreliminaryIntersection3f, Bool)."""
 
-    def __init__(self, scene, traversal: str = "layer_sorted", treelet_height: int = 4, leaf_size: int = 4,
+    def __init__(self, scene, traversal: str = "auto", treelet_height: int = 4, leaf_size: int = 4,
                  count_work: bool = True):
         t0 = time.perf_counter()
         self.scene = scene
@@ -97,6 +97,7 @@ class SceneTracer:
         self.build_s = time.perf_counter() - t0
         self.trace_s = 0.0
         self.trace_stats = []
+        self.recorder = None  # a record.RayRecorder to capture every traced ray by kind
 
     def reset_counters(self):
         self.trace_s = 0.0
@@ -110,10 +111,15 @@ class SceneTracer:
         self.trace_s += time.perf_counter() - t0
         return out
 
-    def intersect(self, ray: mi.Ray3f, active) -> mi.PreliminaryIntersection3f:
-        """Closest hit over meshes (our traversal) and analytic shapes (Mitsuba's per-shape test)."""
+    def intersect(self, ray: mi.Ray3f, active, kind="camera") -> mi.PreliminaryIntersection3f:
+        """Closest hit over meshes (our traversal) and analytic shapes (Mitsuba's per-shape test).
+        `kind` (a record.KINDS name or an array of codes) labels the rays for a recorder."""
         active = mi.Bool(active)
-        hits = self._query(lambda o, d, tmax: self.bvh.trace(o, d, tmax, mode=self.traversal, stats=self.count_work), ray, active)
+        if self.recorder is not None:
+            self.recorder.add(kind, ray, active)
+        hint = "camera" if isinstance(kind, str) and kind == "camera" else "bounce"
+        hits = self._query(lambda o, d, tmax: self.bvh.trace(o, d, tmax, mode=self.traversal, stats=self.count_work,
+                                                             hint=hint), ray, active)
         self.trace_stats.append(hits.stats)
         hit = active & (mi.UInt32(hits.prim) != layerbvh.MISS)
         pi = dr.zeros(mi.PreliminaryIntersection3f, dr.width(ray.o))
@@ -139,8 +145,10 @@ class SceneTracer:
     def occluded(self, ray: mi.Ray3f, active) -> mi.Bool:
         """Any hit in (0, ray.maxt): our any-hit traversal, then the analytic shapes."""
         active = mi.Bool(active)
+        if self.recorder is not None:
+            self.recorder.add("shadow", ray, active)
         occ = mi.Bool(self._query(lambda o, d, tmax: self.bvh.occluded(o, d, tmax, mode=self.traversal,
-                                                                     stats=self.count_work), ray, active))
+                                                                     stats=self.count_work, hint="shadow"), ray, active))
         self.trace_stats.append(self.bvh.last_occluded_stats)
         occ &= active
         for _, shape in self.geometry.analytic:

@@ -23,7 +23,7 @@ def _parser() -> argparse.ArgumentParser:
         sp.add_argument("--spp", type=int, help="samples per pixel (default: the scene's)")
         sp.add_argument("--res", type=int, nargs=2, metavar=("W", "H"), help="film resolution (default: the scene's)")
         sp.add_argument("--seed", type=int, default=0)
-        sp.add_argument("--traversal", default="layer_sorted", help="per_ray | layer_sorted | layer_unsorted")
+        sp.add_argument("--traversal", default="auto", help="auto | per_ray | layer_sorted | layer_unsorted (default auto)")
         sp.add_argument("--treelet-height", type=int, default=4)
         sp.add_argument("--leaf-size", type=int, default=4)
         sp.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb, cuda_ad_rgb)")
@@ -42,7 +42,7 @@ def _parser() -> argparse.ArgumentParser:
                    "(BVH build, compile and the reference are timed separately)")
     v.add_argument("--out", required=True, help="output folder (convergence.csv/.json/.png/.md)")
     v.add_argument("--configs", default="stock,per_ray,layer_sorted:4",
-                   help="comma list: stock, per_ray, layer_sorted:H, layer_unsorted:H (default %(default)s)")
+                   help="comma list: stock, auto, per_ray, layer_sorted:H, layer_unsorted:H (default %(default)s)")
     v.add_argument("--ref-spp", type=int, default=4096, help="spp of the stock reference (default %(default)s)")
     v.add_argument("--max-spp", type=int, help="stop doubling here even within budget (default ref spp / 16)")
     v.add_argument("--res", type=int, nargs=2, metavar=("W", "H"), help="film resolution (default: the scene's)")
@@ -69,8 +69,8 @@ def _check_args(args):
     if args.res is not None and min(args.res) < 1:
         raise CliError(f"--res must be positive, got {args.res[0]} {args.res[1]}")
     import layerbvh
-    if args.traversal not in layerbvh.MODES:
-        raise CliError(f"--traversal must be one of {', '.join(layerbvh.MODES)}; got {args.traversal!r}")
+    if args.traversal not in layerbvh.TRACE_MODES:
+        raise CliError(f"--traversal must be one of {', '.join(layerbvh.TRACE_MODES)}; got {args.traversal!r}")
     if not 1 <= args.treelet_height <= 64:
         raise CliError(f"--treelet-height must be in [1, 64], got {args.treelet_height}")
 

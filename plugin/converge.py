@@ -62,17 +62,18 @@ def parse_configs(text: str) -> list[Config]:
             if height:
                 raise ConvergeError(f"--configs: 'stock' takes no treelet height, got {item!r}")
             cfg = Config("stock")
-        elif mode in layerbvh.MODES:
+        elif mode in layerbvh.TRACE_MODES:
             try:
                 h = int(height) if height else 4
             except ValueError:
                 raise ConvergeError(f"--configs: treelet height in {item!r} is not an integer") from None
             if not 1 <= h <= 64:
                 raise ConvergeError(f"--configs: treelet height in {item!r} must be in [1, 64]")
-            cfg = Config(mode if mode == "per_ray" else f"{mode}:{h}", traversal=mode, treelet_height=h)
+            plain = mode == "per_ray" or (mode == "auto" and not height)
+            cfg = Config(mode if plain else f"{mode}:{h}", traversal=mode, treelet_height=h)
         else:
             raise ConvergeError(f"--configs: unknown configuration {item!r}; use stock or one of "
-                                f"{', '.join(layerbvh.MODES)} (optionally :HEIGHT)")
+                                f"{', '.join(layerbvh.TRACE_MODES)} (optionally :HEIGHT)")
         if cfg.name in seen:
             raise ConvergeError(f"--configs: {cfg.name!r} is listed twice")
         seen.add(cfg.name)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import time
+from collections import Counter
 
 import drjit as dr
 import mitsuba as mi
@@ -9,6 +10,7 @@ import mitsuba as mi
 import layerbvh
 
 from .adapter import SceneTracer
+from .record import bounce_kind
 
 
 def mis_weight(pdf_a, pdf_b):
@@ -39,8 +41,9 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
     order, so leaving a feature out never changes the image.
 
     Properties: ``max_depth`` (default -1, infinite), ``rr_depth`` (5), ``hide_emitters`` (false)
-    as in ``path``; ``traversal`` (``per_ray`` | ``layer_sorted`` | ``layer_unsorted``, default
-    ``layer_sorted``), ``treelet_height`` (4), ``leaf_size`` (4), ``stats`` (false: collect
+    as in ``path``; ``traversal`` (``auto`` | ``per_ray`` | ``layer_sorted`` | ``layer_unsorted``,
+    default ``auto``: per ray batch, the faster of per_ray and layer_sorted, timed once per kind
+    of batch), ``treelet_height`` (4), ``leaf_size`` (4), ``stats`` (false: collect
     traversal work counts), ``adaptive`` (true: leave out what the scene does not need).
     """
 
@@ -49,7 +52,7 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
         self.max_depth = props.get("max_depth", -1)
         self.rr_depth = props.get("rr_depth", 5)
         self.hide_emitters = props.get("hide_emitters", False)
-        self.traversal = props.get("traversal", "layer_sorted")
+        self.traversal = props.get("traversal", "auto")
         self.treelet_height = props.get("treelet_height", 4)
         self.leaf_size = props.get("leaf_size", 4)
         self.stats = props.get("stats", False)
@@ -58,8 +61,8 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
             raise ValueError(f"layerbvh integrator: max_depth must be -1 (infinite) or >= 0, got {self.max_depth}")
         if self.rr_depth <= 0:
             raise ValueError(f"layerbvh integrator: rr_depth must be > 0, got {self.rr_depth}")
-        if self.traversal not in layerbvh.MODES:
-            raise ValueError(f"layerbvh integrator: traversal must be one of {', '.join(layerbvh.MODES)}; "
+        if self.traversal not in layerbvh.TRACE_MODES:
+            raise ValueError(f"layerbvh integrator: traversal must be one of {', '.join(layerbvh.TRACE_MODES)}; "
                              f"got {self.traversal!r}")
         self._tracers = {}
         self.last_stats = {}
@@ -96,6 +99,8 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
             "time_traverse_s": sum(s.time_traverse_s for s in steps),
             "peak_work_bytes": max((s.work_bytes for s in steps), default=0),
             "bounces": getattr(tracer, "bounces", 0),
+            "modes_used": dict(Counter(s.mode for s in steps)),
+            "auto_choices": {"/".join(map(str, k)): v for k, v in tracer.bvh.auto_choices.items()},
             "features": tracer.features.as_dict(),
         }
         return img
@@ -160,6 +165,7 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
                 Lr_dir = dr.select(active_em, beta * mis_em * bsdf_value_em * em_weight, 0)
 
             bsdf_sample, bsdf_weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(), sampler.next_2d(), active_next)
+            kind = "camera" if tracer.recorder is None else bounce_kind(mi, dr, bsdf_sample.sampled_type, depth)
 
             L = dr.select(active, L + Le + Lr_dir, L)
             ray = si.spawn_ray(si.to_world(bsdf_sample.wo))
@@ -183,7 +189,7 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
             tracer.bounces = max(getattr(tracer, "bounces", 0), bounce)
             if not dr.any(active)[0] if dr.is_array_v(dr.any(active)) else not dr.any(active):
                 break
-            pi = tracer.intersect(ray, active)
+            pi = tracer.intersect(ray, active, kind)
 
         return dr.select(valid_ray, L, 0), valid_ray, []
 
@@ -242,13 +248,17 @@ def plan_features(scene, tracer: SceneTracer, integ: "LayerBVHIntegrator") -> Fe
     f.decide("analytic_shapes", n_analytic > 0, f"{n_analytic} sphere/disk/cylinder shape(s)",
              "no sphere, disk or cylinder: BVH hits only", force)
     one_treelet = tracer.bvh.stats.treelets <= 1
-    sorted_mode = integ.traversal == "layer_sorted"
-    f.decide("sort", sorted_mode and not one_treelet, "rays sorted by treelet between wavefront steps",
+    sorted_mode = integ.traversal in ("layer_sorted", layerbvh.AUTO)
+    f.decide("sort", sorted_mode and not one_treelet,
+             "rays sorted by treelet between wavefront steps" + (
+                 " (auto: for the ray batches where layer_sorted timed faster)" if integ.traversal == layerbvh.AUTO else ""),
              "the BVH fits in one treelet: one step, nothing to sort" if sorted_mode and one_treelet
              else f"traversal {integ.traversal} does not sort")
     f.decide("statistics", integ.stats, "stats=true: work counters in the kernels",
              "not asked for (stats=false): no work counters")
-    f.active.append({"feature": f"traversal:{integ.traversal}", "reason": "the only traversal mode compiled"})
+    f.active.append({"feature": f"traversal:{integ.traversal}",
+                     "reason": "per_ray and layer_sorted, chosen per ray batch by timing" if integ.traversal == layerbvh.AUTO
+                     else "the only traversal mode compiled"})
     f.active.append({"feature": "any_hit_shadows", "reason": "shadow rays stop at their first hit"})
     return f
 

@@ -1,0 +1,49 @@
+"""Ray batches: tracing in batches of any size returns bit-identical hits and bounds the work memory by the batch."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import layerbvh
+from scripts import meshes
+
+
+@pytest.mark.parametrize("mode", layerbvh.MODES)
+def test_batches_change_nothing_but_memory(procedural, mode):
+    v, f = procedural
+    o, d = meshes.incoherent_rays(v, 20_000, seed=11)
+    whole = layerbvh.build(v, f, treelet_height=3, backend="llvm")
+    batched = layerbvh.build(v, f, treelet_height=3, backend="llvm", batch_rays=3_000)
+    a, b = whole.trace(o, d, mode=mode), batched.trace(o, d, mode=mode)
+    for name in ("t", "prim", "u", "v"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    assert b.stats.batches == 7 and a.stats.batches == 1 and b.stats.rays == 20_000
+    assert (b.stats.inner_nodes, b.stats.leaves, b.stats.triangles) == (a.stats.inner_nodes, a.stats.leaves,
+                                                                        a.stats.triangles)
+    if mode != "per_ray":  # the entry stacks and queues scale with the batch
+        assert b.stats.work_bytes < a.stats.work_bytes / 3
+    tmax = np.where(np.isfinite(a.t), a.t * 0.5, 10.0).astype(np.float32)
+    assert np.array_equal(whole.occluded(o, d, tmax, mode=mode), batched.occluded(o, d, tmax, mode=mode))
+
+
+def test_batch_size_is_checked(bunny):
+    with pytest.raises(ValueError, match="batch_rays"):
+        layerbvh.build(*bunny, batch_rays=0)
+
+
+def test_auto_returns_the_same_hits_and_records_its_choice(procedural):
+    v, f = procedural
+    bvh = layerbvh.build(v, f, treelet_height=3, backend="llvm")
+    o, d = meshes.incoherent_rays(v, 70_000, seed=5)
+    ref = bvh.trace(o, d, mode="per_ray")
+    a = bvh.trace(o, d, mode="auto", hint="bounce")
+    assert np.array_equal(a.prim, ref.prim) and np.array_equal(a.t, ref.t)
+    (key, choice), = bvh.auto_choices.items()
+    assert key == ("closest_hit", "bounce", (70_000).bit_length())
+    assert choice["mode"] in ("per_ray", "layer_sorted") and a.stats.mode == f"auto:{choice['mode']}"
+    faster = min(choice["seconds"], key=choice["seconds"].get)
+    assert choice["mode"] == faster
+    bvh.trace(o, d, mode="auto", hint="bounce")
+    assert len(bvh.auto_choices) == 1, "decided once per kind and size class"
+    small = bvh.trace(o[:1000], d[:1000], mode="auto")
+    assert small.stats.mode == "auto:per_ray" and len(bvh.auto_choices) == 1, "small batches never calibrate"
