@@ -333,7 +333,8 @@ def plot_png(configs: list[Config], title: str) -> bytes:
         ax.set_xlabel("render time per image (s)")
         ax.set_ylabel(name)
         ax.grid(True, which="both", alpha=0.3)
-    axes[0].legend(fontsize=8)
+    for ax in axes:
+        ax.legend(fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     buf = io.BytesIO()

@@ -60,6 +60,7 @@ def headline_rows(rows: list[dict]) -> list[dict]:
         mem_s, mem_p = work_memory(srt), work_memory(per)
         out.append({"mesh": mesh, "triangles": per["triangles"], "rays": kind, "query": per.get("query", "closest_hit"),
                     "ray_count": per["ray_count"], "embree": emb["mrays_s"], "per_ray": per["mrays_s"],
+                    "per_ray_h": per["treelet_height"],
                     "sorted": srt["mrays_s"], "sorted_h": srt["treelet_height"],
                     "sorted_vs_per_ray": srt["mrays_s"] / per["mrays_s"],
                     "sorted_vs_embree": srt["mrays_s"] / emb["mrays_s"], "per_ray_vs_embree": per["mrays_s"] / emb["mrays_s"],
@@ -70,13 +71,13 @@ def headline_rows(rows: list[dict]) -> list[dict]:
 
 
 def headline_table(rows: list[dict]) -> str:
-    lines = ["| scene / mesh | triangles | rays | query | Embree Mrays/s | per_ray | layer_sorted (best h) "
+    lines = ["| scene / mesh | triangles | rays | query | Embree Mrays/s | per_ray (best h) | layer_sorted (best h) "
              "| sorted × per_ray | sorted × Embree | per_ray × Embree | sorted memory × per_ray "
              "| auto (its choice) | auto × faster of the two |",
              "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
     for h in headline_rows(rows):
         lines.append(f"| {h['mesh']} | {h['triangles']:,} | {h['rays']} ({h['ray_count']:,}) "
-                     f"| {h['query'].replace('_', '-')} | {h['embree']:.2f} | {h['per_ray']:.2f} "
+                     f"| {h['query'].replace('_', '-')} | {h['embree']:.2f} | {h['per_ray']:.2f} (h={h['per_ray_h']}) "
                      f"| {h['sorted']:.2f} (h={h['sorted_h']}) | {h['sorted_vs_per_ray']:.2f} "
                      f"| {h['sorted_vs_embree']:.2f} | {h['per_ray_vs_embree']:.2f} | {_f(h['memory_vs_per_ray'])} "
                      f"| {_f(h['auto'])} {h['auto_choice'] or ''} | {_f(h['auto_vs_best_of_two'])} |")
@@ -138,14 +139,15 @@ def plot_heights(rows: list[dict]) -> bytes:
     nrows = (len(sets) + cols - 1) // cols
     fig, axes = plt.subplots(nrows, cols, figsize=(4.2 * cols, 3.3 * nrows), squeeze=False)
     for ax, ((mesh, kind), rs) in zip(axes.flat, sets):
-        for mode, style in (("layer_sorted", "o-"), ("layer_unsorted", "s--")):
+        for mode, style in (("layer_sorted", "o-"), ("layer_unsorted", "s--"), ("per_ray", "k^-")):
             pts = sorted((r["treelet_height"], r["mrays_s"]) for r in rs if r["mode"] == mode)
-            if pts:
+            if len(pts) > 1:
                 ax.plot(*zip(*pts), style, label=mode)
-        for mode, style in (("per_ray", "k-"), ("embree", "k:")):
-            r = best(rs, mode)
-            if r:
-                ax.axhline(r["mrays_s"], ls=style[1:], color="k" if mode == "per_ray" else "grey", label=mode)
+            elif pts:  # one layout only: a flat reference line
+                ax.axhline(pts[0][1], ls="-", color="k", label=mode)
+        r = best(rs, "embree")
+        if r:
+            ax.axhline(r["mrays_s"], ls=":", color="grey", label="embree")
         ax.set_title(f"{mesh}: {kind}", fontsize=9)
         ax.set_xlabel("treelet height")
         ax.set_ylabel("Mrays/s")
@@ -187,7 +189,7 @@ def scaling_series(rows: list[dict]) -> dict:
     """label -> sorted [(triangles, row)]"""
     out = defaultdict(list)
     for r in rows:
-        label = r["mode"] if r["treelet_height"] is None or r["mode"] == "per_ray" else f"{r['mode']} h={r['treelet_height']}"
+        label = r["mode"] if r["treelet_height"] is None else f"{r['mode']} h={r['treelet_height']}"
         out[label].append((r["triangles"], r))
     return {k: sorted(v, key=lambda p: p[0]) for k, v in out.items()}
 
@@ -200,8 +202,8 @@ def plot_scaling(rows: list[dict]) -> bytes:
         axes[0].plot(x, [p[1]["ray_count"] / p[1]["mrays_s"] / 1e6 for p in pts], "o-", label=label)
         if label != "embree":
             axes[1].plot(x, [work_memory(p[1]) / MIB for p in pts], "o-", label=label)
-            if label.startswith("layer_sorted") or label == "per_ray":
-                axes[2].plot(x, [p[1]["build_s"] for p in pts], "o-", label="layerbvh build" if label == "per_ray" else None)
+            if label.startswith("per_ray"):
+                axes[2].plot(x, [p[1]["build_s"] for p in pts], "o-", label=f"layerbvh build ({label.split()[-1]})")
         else:
             axes[2].plot(x, [p[1]["build_s"] for p in pts], "s--", label="Embree (Mitsuba scene)")
     titles = ("trace time (s) for the ray set", "BVH + work memory (MiB)", "build time (s)")
@@ -225,7 +227,7 @@ def scaling_table(rows: list[dict]) -> str:
              "|---:|" + "---:|" * (2 * len(labels))]
     for n in sizes:
         by = {lb: dict(pts).get(n) for lb, pts in series.items()}
-        per = by.get("per_ray")
+        per = next((by[lb] for lb in labels if lb.startswith("per_ray") and by[lb]), None)
         lines.append(f"| {n:,} | " + " | ".join(_f(by[lb] and by[lb]["mrays_s"]) for lb in labels) + " | "
                      + " | ".join(_f(by[lb] and work_memory(by[lb]) / MIB, ".0f") for lb in labels if lb != "embree")
                      + f" | {_f(per and per['build_s'])} |")
@@ -241,7 +243,22 @@ def machine_line(doc: dict) -> str:
             + ", ".join(f"{k} {x}" for k, x in v.items()))
 
 
-def document(bench: list[dict], scaling: dict | None, fig_dir: str) -> str:
+def converge_section(dirs: list[Path], out_dir: Path) -> list[str]:
+    """Each `layerbvh converge` output folder: its command line settings, table and plot."""
+    parts = ["## Error against run time (`layerbvh converge`)", ""]
+    for d in dirs:
+        doc = json.loads((d / "convergence.json").read_text())
+        table = (d / "convergence.md").read_text().split("\n", 2)[2].strip()  # drop the file's own title
+        rel = d.resolve().relative_to(out_dir.resolve()) if d.resolve().is_relative_to(out_dir.resolve()) else d.resolve()
+        configs = ",".join(c["name"] for c in doc["configs"])
+        parts += [f"### {Path(doc['scene']).name}", "",
+                  f"`.venv/bin/layerbvh converge {doc['scene']} --budget {doc['budget_s']:g} --res "
+                  f"{doc['resolution'][0]} {doc['resolution'][1]} --ref-spp {doc['reference']['spp']} "
+                  f"--configs {configs} --out {rel}`", "", table, "", f"![convergence]({rel}/convergence.png)", ""]
+    return parts
+
+
+def document(bench: list[dict], scaling: dict | None, fig_dir: str, converge: list[str] | None = None) -> str:
     rows = [r for d in bench for r in d["results"]]
     parts = ["# Benchmarks", "",
              "Generated by `scripts/report.py` from the JSON of `scripts/bench_traversal.py` and "
@@ -254,8 +271,10 @@ def document(bench: list[dict], scaling: dict | None, fig_dir: str) -> str:
     for d in bench + ([scaling] if scaling else []):
         parts += [f"- `{d['command']}`", f"  ({machine_line(d)})"]
     parts += ["", "## Headline", "",
-              "Best treelet height of `layer_sorted` per ray set, against `per_ray` (the same BVH, one kernel, a "
-              "per-ray stack) and Embree.", "", headline_table(rows), "",
+              "Best treelet height of `layer_sorted` per ray set, against the best layout of `per_ray` (the same "
+              "BVH, one kernel, a per-ray stack) and Embree. `auto` runs on the h=4 layout (the integrator's "
+              "default) and is compared with the faster of `per_ray` and `layer_sorted` on that layout.", "",
+              headline_table(rows), "",
               f"![throughput against treelet height]({fig_dir}/throughput_vs_height.png)", "",
               "## Time per stage", "",
               "Sort: counting sort and permutation between wavefront steps; treelet / leaf: the traversal kernel's "
@@ -267,6 +286,7 @@ def document(bench: list[dict], scaling: dict | None, fig_dir: str) -> str:
                   "The `spheres` stress scene (scripts/gen_stress.py) from 10k triangles up, random rays "
                   "through its bounding box.", "", scaling_table(scaling["results"]), "",
                   f"![scaling]({fig_dir}/scaling.png)", ""]
+    parts += converge or []
     parts += ["## Every ray set", ""]
     for (mesh, kind), rs in ray_sets(rows).items():
         r0 = rs[0]
@@ -289,6 +309,7 @@ def main(argv=None) -> int:
     p.add_argument("--scaling", help="bench_scaling.py --json output")
     p.add_argument("--out", default=str(ROOT / "BENCHMARKS.md"))
     p.add_argument("--figures", default=str(ROOT / "docs" / "bench"), help="folder for the plots")
+    p.add_argument("--converge", action="append", default=[], help="a `layerbvh converge` output folder (repeatable)")
     p.add_argument("--readme", action="store_true", help="also splice the headline into README.md")
     args = p.parse_args(argv)
     bench = [load(b) for b in args.bench]
@@ -302,7 +323,8 @@ def main(argv=None) -> int:
     # Links relative to the document where the plots sit below it, so the Markdown renders in place.
     rel = figs.resolve().relative_to(out.resolve().parent) if figs.resolve().is_relative_to(
         out.resolve().parent) else figs.resolve()
-    atomic.write_text(out, document(bench, scaling, str(rel)))
+    conv = converge_section([Path(c) for c in args.converge], out.parent) if args.converge else None
+    atomic.write_text(out, document(bench, scaling, str(rel), conv))
     if args.readme:
         atomic.splice_section(ROOT / "README.md", "bench_headline", readme_headline(bench))
     print(f"wrote {out} and plots in {figs}")

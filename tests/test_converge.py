@@ -96,3 +96,11 @@ def test_bad_configs_are_named(capsys):
     assert main(["converge", str(SCENES / "cbox.xml"), "--budget", "1", "--out", "/nonexistent/x",
                  "--configs", "stock,bogus"]) == 2
     assert "bogus" in capsys.readouterr().err
+
+
+def test_report_quotes_the_convergence_table(converged):
+    from scripts import report
+    out, _, _ = converged
+    text = "\n".join(report.converge_section([out], out.parent))
+    assert "layerbvh converge" in text and "--configs stock,per_ray,layer_sorted:2" in text
+    assert "| layer_sorted:2 |" in text and f"({out.name}/convergence.png)" in text
