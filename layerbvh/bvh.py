@@ -23,9 +23,10 @@ AUTO = "auto"
 TRACE_MODES = MODES + (AUTO,)
 # auto: below this many rays a batch goes per_ray without asking (a few rays per treelet cannot
 # repay a sort and a launch per step); above it the first batch of each size class is timed both
-# ways on up to AUTO_SAMPLE_RAYS of its rays and the faster mode is kept for that class.
+# ways on a whole batch (up to batch_rays of its rays: sorting pays off with the number of rays
+# per treelet, so a smaller sample would favour per_ray) and the faster mode is kept.
 AUTO_MIN_RAYS = 1 << 16
-AUTO_SAMPLE_RAYS = 1 << 18
+AUTO_WARMUP_RAYS = 4096  # compiles both modes' kernels before anything is timed
 
 
 @dataclass
@@ -151,25 +152,28 @@ class LayerBVH:
         Timing both on real rays captures what a rule cannot: scene size against the caches,
         ray coherence, CPU or GPU. Hits do not depend on the choice (every mode is exact and
         breaks ties by primitive id), only the time does."""
-        if self.device is None or n < AUTO_MIN_RAYS or self.stats.treelets <= 1:
+        k = min(n, self.batch_rays)  # what one traced batch holds
+        if self.device is None or k < AUTO_MIN_RAYS or self.stats.treelets <= 1:
             return "per_ray"
-        key = ("any_hit" if any_hit else "closest_hit", hint, n.bit_length())
+        key = ("any_hit" if any_hit else "closest_hit", hint, k.bit_length())
         known = self.auto_choices.get(key)
         if known is not None:
             return known["mode"]
-        k = min(n, AUTO_SAMPLE_RAYS)
-        idx = dr.arange(self.m.UInt32, k)  # leading rays: neighbours, as in the batch itself
-        take = (lambda x: dr.gather(type(x), x, idx))
-        sample = ([take(c) for c in oj], [take(c) for c in dj], take(tm), take(valid))
+
+        def leading(count):  # the first rays: neighbours, as in the batch itself
+            idx = dr.arange(self.m.UInt32, count)
+            take = (lambda x: dr.gather(type(x), x, idx))
+            return [take(c) for c in oj], [take(c) for c in dj], take(tm), take(valid)
+
         seconds = {}
-        for rep in range(3):  # the first round compiles the kernels and is not counted
+        for rep, sample in enumerate((leading(min(k, AUTO_WARMUP_RAYS)), leading(k), leading(k))):
             for mode in ("per_ray", "layer_sorted"):
                 dr.sync_thread()
                 t0 = time.perf_counter()
                 res, _ = _trace(self.m, self.device, *sample, mode, any_hit, self.tail_rays, count_work=False)
                 dr.eval(res.t, res.tri)
                 dr.sync_thread()
-                if rep:
+                if rep:  # round 0 only compiles
                     seconds[mode] = min(seconds.get(mode, dr.inf), time.perf_counter() - t0)
         choice = min(seconds, key=seconds.get)
         self.auto_choices[key] = {"mode": choice, "seconds": seconds, "sample_rays": k}

@@ -71,6 +71,8 @@ def parse_args(argv=None):
                    help="ray recording (.npz from scripts/record_rays.py) to bench: its triangles and every "
                         "recorded ray kind (repeatable)")
     p.add_argument("--kinds", help="comma list of recorded ray kinds to bench (default: all in the file)")
+    p.add_argument("--batch-rays", type=int, default=layerbvh.bvh.BATCH_RAYS,
+                   help="rays per trace batch of the layerbvh modes (default %(default)s; bounds work memory)")
     p.add_argument("--json", metavar="OUT", help="write every figure to this JSON file")
     args = p.parse_args(argv)
     try:
@@ -79,8 +81,8 @@ def parse_args(argv=None):
         p.error(f"--heights must be a comma list of integers, got {args.heights!r}")
     if not args.heights:
         p.error("--heights is empty")
-    if args.rays < 1 or args.runs < 1 or args.procedural_tris < 0:
-        p.error("--rays and --runs must be >= 1, --procedural-tris >= 0")
+    if args.rays < 1 or args.runs < 1 or args.procedural_tris < 0 or args.batch_rays < 1:
+        p.error("--rays, --runs and --batch-rays must be >= 1, --procedural-tris >= 0")
     args.mesh = [m.strip() for arg in args.mesh for m in arg.split(",") if m.strip()] if args.mesh else None
     args.kinds = [k.strip() for k in args.kinds.split(",") if k.strip()] if args.kinds else None
     return args
@@ -357,7 +359,8 @@ def recorded_ray_sets(rays: dict, args):
 
 def bench_mesh(name: str, v, f, ray_sets, args, source: str = "generated") -> list[dict]:
     scene, embree_build_s = embree_scene(v, f)
-    bvhs = {h: layerbvh.build(v, f, treelet_height=h, backend=args.backend) for h in args.heights}
+    bvhs = {h: layerbvh.build(v, f, treelet_height=h, backend=args.backend,
+                              batch_rays=getattr(args, "batch_rays", layerbvh.bvh.BATCH_RAYS)) for h in args.heights}
     rows = []
     for kind, o, d, tmax, any_hit in ray_sets:
         configs = make_configs(scene, embree_build_s, bvhs, o, d, tmax, any_hit, args.backend, kind)
