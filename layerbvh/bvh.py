@@ -27,6 +27,8 @@ TRACE_MODES = MODES + (AUTO,)
 # per treelet, so a smaller sample would favour per_ray) and the faster mode is kept.
 AUTO_MIN_RAYS = 1 << 16
 AUTO_WARMUP_RAYS = 4096  # compiles both modes' kernels before anything is timed
+AUTO_ROUNDS = 3  # timed rounds, alternating which mode goes first; the median decides
+AUTO_MARGIN = 0.05  # layer_sorted must be this much faster: it also needs far more memory
 
 
 @dataclass
@@ -165,17 +167,23 @@ class LayerBVH:
             take = (lambda x: dr.gather(type(x), x, idx))
             return [take(c) for c in oj], [take(c) for c in dj], take(tm), take(valid)
 
-        seconds = {}
-        for rep, sample in enumerate((leading(min(k, AUTO_WARMUP_RAYS)), leading(k), leading(k))):
-            for mode in ("per_ray", "layer_sorted"):
-                dr.sync_thread()
-                t0 = time.perf_counter()
-                res, _ = _trace(self.m, self.device, *sample, mode, any_hit, self.tail_rays, count_work=False)
-                dr.eval(res.t, res.tri)
-                dr.sync_thread()
-                if rep:  # round 0 only compiles
-                    seconds[mode] = min(seconds.get(mode, dr.inf), time.perf_counter() - t0)
-        choice = min(seconds, key=seconds.get)
+        def timed(sample, mode):
+            dr.sync_thread()
+            t0 = time.perf_counter()
+            res, _ = _trace(self.m, self.device, *sample, mode, any_hit, self.tail_rays, count_work=False)
+            dr.eval(res.t, res.tri)
+            dr.sync_thread()
+            return time.perf_counter() - t0
+
+        warm, batch = leading(min(k, AUTO_WARMUP_RAYS)), leading(k)
+        for mode in ("per_ray", "layer_sorted"):  # compiles the kernels; not counted
+            timed(warm, mode)
+        runs = {"per_ray": [], "layer_sorted": []}
+        for rep in range(AUTO_ROUNDS):  # alternate the order so drifts hit both alike
+            for mode in (("per_ray", "layer_sorted") if rep % 2 == 0 else ("layer_sorted", "per_ray")):
+                runs[mode].append(timed(batch, mode))
+        seconds = {mode: float(np.median(t)) for mode, t in runs.items()}
+        choice = "layer_sorted" if seconds["layer_sorted"] < (1 - AUTO_MARGIN) * seconds["per_ray"] else "per_ray"
         self.auto_choices[key] = {"mode": choice, "seconds": seconds, "sample_rays": k}
         return choice
 

@@ -41,8 +41,8 @@ def test_auto_returns_the_same_hits_and_records_its_choice(procedural):
     (key, choice), = bvh.auto_choices.items()
     assert key == ("closest_hit", "bounce", (70_000).bit_length())
     assert choice["mode"] in ("per_ray", "layer_sorted") and a.stats.mode == f"auto:{choice['mode']}"
-    faster = min(choice["seconds"], key=choice["seconds"].get)
-    assert choice["mode"] == faster
+    sec = choice["seconds"]  # layer_sorted only when clearly faster (it needs more memory)
+    assert choice["mode"] == ("layer_sorted" if sec["layer_sorted"] < 0.95 * sec["per_ray"] else "per_ray")
     bvh.trace(o, d, mode="auto", hint="bounce")
     assert len(bvh.auto_choices) == 1, "decided once per kind and size class"
     small = bvh.trace(o[:1000], d[:1000], mode="auto")
