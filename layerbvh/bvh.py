@@ -9,7 +9,7 @@ import numpy as np
 
 from . import backend as be
 from .layout import TRI_FLOATS, LayerLayout, check_layout, to_layer_layout
-from .sah import BinaryBVH, build_binned_sah
+from .sah import BinaryBVH, build_binned_sah, load_kernels, triangle_bounds
 from .stats import TraceStats
 from .validate import check_mesh, check_param
 from .walk import NO_HIT, DeviceLayout
@@ -56,6 +56,7 @@ class BVHStats:
     bytes: dict
     build_s: float
     layout_s: float
+    kernel_load_s: float = 0.0  # first build in a process: compiling/loading the builder's kernels
 
     @property
     def total_bytes(self) -> int:
@@ -75,9 +76,9 @@ class LayerBVH:
         self.tail_rays = TAIL_RAYS
         self.auto_choices = {}  # (query, hint, size class) -> {"mode", "seconds"}: auto's decisions
         self.m = be.module(self.backend)
+        kernel_load_s = load_kernels() if len(f) else 0.0
         t0 = time.perf_counter()
-        tri = v[f] if len(f) else np.zeros((0, 3, 3), np.float32)
-        self.binary: BinaryBVH | None = build_binned_sah(tri.min(1), tri.max(1), leaf_size) if len(f) else None
+        self.binary: BinaryBVH | None = build_binned_sah(*triangle_bounds(v, f), leaf_size) if len(f) else None
         t1 = time.perf_counter()
         self.layout: LayerLayout | None = to_layer_layout(self.binary, v, f, treelet_height) if len(f) else None
         t2 = time.perf_counter()
@@ -93,7 +94,8 @@ class LayerBVH:
             treelets=lay.treelet_count if lay else 0, depth=lay.depth if lay else 0,
             treelet_height=treelet_height, leaf_size=leaf_size,
             treelet_node_counts=lay.treelet_node_counts.tolist() if lay else [],
-            bytes=lay.array_bytes() if lay else {}, build_s=t1 - t0, layout_s=t2 - t1)
+            bytes=lay.array_bytes() if lay else {}, build_s=t1 - t0, layout_s=t2 - t1,
+            kernel_load_s=kernel_load_s)
 
     def check(self) -> None:
         """Raise AssertionError if a layout invariant is broken (see layout.check_layout)."""

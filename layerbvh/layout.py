@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from .sah import BinaryBVH
@@ -135,10 +136,7 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray, faces: np.ndarray, heigh
     first = np.cumsum(counts) - counts
     tri_ids = b.perm[_ranges(b.start[leaf_order], counts)]
     tri = np.zeros((len(tri_ids), TRI_FLOATS), np.float32)
-    tri[:, 0:9] = vertices[faces[tri_ids]].reshape(-1, 9)
-    tri[:, 9] = tri_ids.astype(np.uint32).view(np.float32)
-    p = vertices[faces[tri_ids]].astype(np.float64)
-    tri[:, 10:16] = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]).view(np.float32)
+    _triangle_records(vertices, faces, tri_ids, tri, tri.view(np.uint32), tri.view(np.float64))
 
     tre_first = np.searchsorted(tre[order], np.arange(n_treelets + 1)).astype(np.uint32)
     return LayerLayout(
@@ -151,6 +149,32 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray, faces: np.ndarray, heigh
         depth=int(b.depth[inner].max()) + 1,
         height=height,
     )
+
+
+@numba.njit(cache=True)
+def _triangle_records(vertices, faces, tri_ids, out, out_u32, out_f64):
+    """Fill the 64-byte triangle records (see LayerLayout.tris) of tri_ids, in that order.
+    out, out_u32, out_f64 are float32, uint32 and float64 views of the same (F, 16) array."""
+    for j in range(len(tri_ids)):
+        fid = tri_ids[j]
+        for k in range(3):
+            for a in range(3):
+                out[j, 3 * k + a] = vertices[faces[fid, k], a]
+        out_u32[j, 9] = np.uint32(fid)
+        p0x, p0y, p0z = np.float64(out[j, 0]), np.float64(out[j, 1]), np.float64(out[j, 2])
+        e1x, e1y, e1z = out[j, 3] - p0x, out[j, 4] - p0y, out[j, 5] - p0z
+        e2x, e2y, e2z = out[j, 6] - p0x, out[j, 7] - p0y, out[j, 8] - p0z
+        # float64 slots 5, 6, 7 are float32 slots 10..15
+        out_f64[j, 5] = e1y * e2z - e1z * e2y
+        out_f64[j, 6] = e1z * e2x - e1x * e2z
+        out_f64[j, 7] = e1x * e2y - e1y * e2x
+
+
+def warm_triangle_records(vertices, faces) -> None:
+    """Compile (or load) _triangle_records' kernel on a small mesh."""
+    ids = np.arange(len(faces), dtype=np.int64)
+    tri = np.zeros((len(ids), TRI_FLOATS), np.float32)
+    _triangle_records(vertices, faces, ids, tri, tri.view(np.uint32), tri.view(np.float64))
 
 
 def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:

@@ -3,6 +3,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import time
+
+import numba
 import numpy as np
 
 MAX_BINS = 16
@@ -34,85 +37,172 @@ class BinaryBVH:
         return self.left < 0
 
 
-def _segment_ids(counts: np.ndarray) -> np.ndarray:
-    return np.repeat(np.arange(len(counts)), counts)
+@numba.njit(cache=True)
+def triangle_bounds(vertices, faces):
+    """Per-triangle bounds (F, 3) lo and hi, float32."""
+    f = len(faces)
+    lo = np.empty((f, 3), np.float32)
+    hi = np.empty((f, 3), np.float32)
+    for i in range(f):
+        for a in range(3):
+            x0, x1, x2 = vertices[faces[i, 0], a], vertices[faces[i, 1], a], vertices[faces[i, 2], a]
+            lo[i, a] = min(x0, min(x1, x2))
+            hi[i, a] = max(x0, max(x1, x2))
+    return lo, hi
 
 
-def _gather_ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """Indices start[i] .. start[i]+count[i]-1 for every i, concatenated."""
-    total = int(counts.sum())
-    offs = np.cumsum(counts) - counts
-    return np.arange(total) - np.repeat(offs - starts, counts)
+@numba.njit(cache=True)
+def _best_split(s, c, lo, hi, cen, cmin, cmax, blo, bhi, bcnt, rarea, rcnt):
+    """SAH-best split of triangles s..s+c (centroid bounds cmin, cmax) over binned centroids.
+
+    Returns (axis, last bin of the left side, bins, scale, left count); axis -1 if no split
+    separates the centroids. Scratch arrays are the caller's: blo/bhi (3, MAX_BINS, 3),
+    bcnt (3, MAX_BINS), rarea/rcnt (MAX_BINS)."""
+    # Small nodes get fewer bins: the sweep is O(bins) per node and deep levels hold most nodes.
+    nb = MAX_BINS if c >= MAX_BINS else max(4, c)
+    scale = np.zeros(3, np.float32)
+    for a in range(3):
+        e = cmax[a] - cmin[a]
+        if e > 0:
+            scale[a] = np.float32(nb) / e
+    for a in range(3):
+        for b in range(nb):
+            bcnt[a, b] = 0
+            for k in range(3):
+                blo[a, b, k] = np.inf
+                bhi[a, b, k] = -np.inf
+    for t in range(s, s + c):
+        for a in range(3):
+            b = min(max(int((cen[t, a] - cmin[a]) * scale[a]), 0), nb - 1)
+            bcnt[a, b] += 1
+            for k in range(3):
+                blo[a, b, k] = min(blo[a, b, k], lo[t, k])
+                bhi[a, b, k] = max(bhi[a, b, k], hi[t, k])
+    best_cost, best_axis, best_bin, best_left = np.inf, -1, 0, 0
+    for a in range(3):
+        if scale[a] == 0:
+            continue
+        # Right-to-left sweep: rarea[b], rcnt[b] describe bins b..nb-1.
+        x0, y0, z0, x1, y1, z1, n = np.inf, np.inf, np.inf, -np.inf, -np.inf, -np.inf, 0
+        for b in range(nb - 1, 0, -1):
+            x0, y0, z0 = min(x0, blo[a, b, 0]), min(y0, blo[a, b, 1]), min(z0, blo[a, b, 2])
+            x1, y1, z1 = max(x1, bhi[a, b, 0]), max(y1, bhi[a, b, 1]), max(z1, bhi[a, b, 2])
+            n += bcnt[a, b]
+            ex, ey, ez = max(x1 - x0, 0.0), max(y1 - y0, 0.0), max(z1 - z0, 0.0)
+            rarea[b] = ex * ey + ey * ez + ez * ex
+            rcnt[b] = n
+        x0, y0, z0, x1, y1, z1, n = np.inf, np.inf, np.inf, -np.inf, -np.inf, -np.inf, 0
+        for b in range(nb - 1):  # split after bin b: left = 0..b, right = b+1..nb-1
+            x0, y0, z0 = min(x0, blo[a, b, 0]), min(y0, blo[a, b, 1]), min(z0, blo[a, b, 2])
+            x1, y1, z1 = max(x1, bhi[a, b, 0]), max(y1, bhi[a, b, 1]), max(z1, bhi[a, b, 2])
+            n += bcnt[a, b]
+            if n == 0 or rcnt[b + 1] == 0:
+                continue
+            ex, ey, ez = max(x1 - x0, 0.0), max(y1 - y0, 0.0), max(z1 - z0, 0.0)
+            cost = n * (ex * ey + ey * ez + ez * ex) + rcnt[b + 1] * rarea[b + 1]
+            if cost < best_cost:
+                best_cost, best_axis, best_bin, best_left = cost, a, b, n
+    return best_axis, best_bin, nb, scale, best_left
 
 
-def _half_area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Half surface area of boxes stored component-major: lo, hi of shape (3, ...)."""
-    e = np.maximum(hi - lo, 0.0)
-    return e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
+@numba.njit(parallel=True, cache=True)
+def _split_level(start, count, median, leaf_size, lo, hi, cen, perm, t_lo, t_hi, t_cen, t_perm, chunks):
+    """Bounds of every node of a level, and the split of every node over `leaf_size` triangles.
+
+    Each node's triangle range [start, start+count) of (lo, hi, cen, perm) is partitioned in
+    place, stably, left child's triangles first. Returns (node lo, node hi, left count; -1 for
+    leaves, -2 if the partition disagrees with the bin counts). Nodes are disjoint ranges, so they run in parallel; chunks own their scratch."""
+    k = len(start)
+    node_lo = np.empty((k, 3), np.float32)
+    node_hi = np.empty((k, 3), np.float32)
+    n_left = np.full(k, -1, np.int64)
+    chunks = min(k, chunks)
+    for ch in numba.prange(chunks):
+        blo = np.empty((3, MAX_BINS, 3), np.float32)
+        bhi = np.empty((3, MAX_BINS, 3), np.float32)
+        bcnt = np.empty((3, MAX_BINS), np.int64)
+        rarea = np.empty(MAX_BINS, np.float32)
+        rcnt = np.empty(MAX_BINS, np.int64)
+        cmin = np.empty(3, np.float32)
+        cmax = np.empty(3, np.float32)
+        for i in range(ch * k // chunks, (ch + 1) * k // chunks):
+            s, c = start[i], count[i]
+            for a in range(3):
+                node_lo[i, a], node_hi[i, a], cmin[a], cmax[a] = np.inf, -np.inf, np.inf, -np.inf
+            for t in range(s, s + c):
+                for a in range(3):
+                    node_lo[i, a] = min(node_lo[i, a], lo[t, a])
+                    node_hi[i, a] = max(node_hi[i, a], hi[t, a])
+                    cmin[a] = min(cmin[a], cen[t, a])
+                    cmax[a] = max(cmax[a], cen[t, a])
+            if c <= leaf_size:
+                continue
+            axis, sbin, nb, scale, nl = -1, 0, 0, cmin, c // 2
+            if not median[i]:
+                axis, sbin, nb, scale, nl = _best_split(s, c, lo, hi, cen, cmin, cmax, blo, bhi, bcnt, rarea, rcnt)
+            if axis < 0:  # no SAH split separates the centroids: halve the range
+                nl = c // 2
+            # Stable partition through the scratch copies, then back.
+            li, ri = s, s + nl
+            for t in range(s, s + c):
+                if axis < 0:
+                    left = t - s < nl
+                else:
+                    left = min(max(int((cen[t, axis] - cmin[axis]) * scale[axis]), 0), nb - 1) <= sbin
+                if left:
+                    d = li
+                    li += 1
+                else:
+                    d = ri
+                    ri += 1
+                t_perm[d] = perm[t]
+                for a in range(3):
+                    t_lo[d, a], t_hi[d, a], t_cen[d, a] = lo[t, a], hi[t, a], cen[t, a]
+            if li != s + nl or ri != s + c:  # the bin counts and the partition disagree
+                n_left[i] = -2
+                continue
+            for t in range(s, s + c):
+                perm[t] = t_perm[t]
+                for a in range(3):
+                    lo[t, a], hi[t, a], cen[t, a] = t_lo[t, a], t_hi[t, a], t_cen[t, a]
+            n_left[i] = nl
+    return node_lo, node_hi, n_left
 
 
-def _best_binned_split(cen, tlo, thi, seg, offs, counts):
-    """For each node (segment), the SAH-best (axis, bin) split; cost inf where none exists."""
-    k = len(counts)
-    # Bin tables cost O(k * BINS): deep levels of small nodes get fewer bins, so a level's
-    # tables never outgrow its triangle count by much.
-    mean = cen.shape[1] / k
-    BINS = int(min(MAX_BINS, max(4, 2 ** np.ceil(np.log2(mean)))))
-    cmin = np.minimum.reduceat(cen, offs, axis=1)
-    cmax = np.maximum.reduceat(cen, offs, axis=1)
-    ext = cmax - cmin
-    best_cost = np.full(k, np.inf)
-    best_axis = np.zeros(k, np.int64)
-    best_bin = np.zeros(k, np.int64)
-    bins_of = np.empty((3, cen.shape[1]), np.int64)
-    for axis in range(3):
-        e = ext[axis]
-        scale = np.where(e > 0, np.float32(BINS) / np.where(e > 0, e, 1.0), 0.0).astype(np.float32)
-        b = ((cen[axis] - cmin[axis][seg]) * scale[seg]).astype(np.int64)
-        np.clip(b, 0, BINS - 1, out=b)
-        bins_of[axis] = b
-        # Bin-major tables (BINS, k): prefix scans over bins then run over contiguous rows.
-        key = b * k + seg
-        n = np.bincount(key, minlength=k * BINS).reshape(BINS, k)
-        blo = np.full((3, BINS * k), np.inf, np.float32)
-        bhi = np.full((3, BINS * k), -np.inf, np.float32)
-        for c in range(3):
-            np.minimum.at(blo[c], key, tlo[c])
-            np.maximum.at(bhi[c], key, thi[c])
-        blo = blo.reshape(3, BINS, k)
-        bhi = bhi.reshape(3, BINS, k)
-        # Split after bin i: left = bins 0..i, right = bins i+1..BINS-1.
-        lcount = np.cumsum(n, axis=0)[:-1]
-        rcount = n.sum(axis=0) - lcount
-        larea = _half_area(np.minimum.accumulate(blo, axis=1), np.maximum.accumulate(bhi, axis=1))[:-1]
-        rarea = _half_area(np.minimum.accumulate(blo[:, ::-1], axis=1),
-                           np.maximum.accumulate(bhi[:, ::-1], axis=1))[::-1][1:]
-        with np.errstate(invalid="ignore"):
-            cost = lcount * larea + rcount * rarea
-        cost = np.where((lcount > 0) & (rcount > 0), cost, np.inf)
-        i = np.argmin(cost, axis=0)
-        c = cost[i, np.arange(k)]
-        better = c < best_cost
-        best_cost = np.where(better, c, best_cost)
-        best_axis = np.where(better, axis, best_axis)
-        best_bin = np.where(better, i, best_bin)
-    return best_cost, best_axis, best_bin, bins_of
+_kernels_ready = False
+
+
+def load_kernels() -> float:
+    """Compile the builder's numba kernels (or load them from numba's on-disk cache) on a tiny
+    mesh; the seconds it took, 0.0 once done. Kept out of the build time like kernel compilation."""
+    global _kernels_ready
+    if _kernels_ready:
+        return 0.0
+    t0 = time.perf_counter()
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
+    f = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3], [0, 1, 2], [0, 2, 3]], np.int64)
+    build_binned_sah(*triangle_bounds(v, f), 1)
+    from .layout import warm_triangle_records  # the layout's kernel, compiled alike
+    warm_triangle_records(v, f)
+    _kernels_ready = True
+    return time.perf_counter() - t0
 
 
 def build_binned_sah(tri_lo: np.ndarray, tri_hi: np.ndarray, leaf_size: int) -> BinaryBVH:
-    """Level-synchronous binned SAH: every level splits all its open nodes with whole-array numpy ops.
+    """Level-synchronous binned SAH: each level's nodes are split in parallel (numba kernels).
 
     Every node with more than `leaf_size` triangles is split. Where the binned SAH finds no split
     (all centroids in one bin) or the node is close to MAX_DEPTH, the split halves the node's
     triangle range instead, so depth stays below MAX_DEPTH on any input.
     """
     f = len(tri_lo)
-    # Component-major (3, F) copies kept in `perm` order, so each level reads node ranges
-    # sequentially instead of gathering triangles from all over memory.
-    lo_p = np.ascontiguousarray(tri_lo.T, np.float32)
-    hi_p = np.ascontiguousarray(tri_hi.T, np.float32)
-    cen_p = (lo_p + hi_p) * np.float32(0.5)
+    # Triangle bounds and centroids are kept in `perm` order, so each node reads its own
+    # contiguous range; the t_* arrays are the partition's scratch.
+    lo = np.ascontiguousarray(tri_lo, np.float32)
+    hi = np.ascontiguousarray(tri_hi, np.float32)
+    cen = (lo + hi) * np.float32(0.5)
     perm = np.arange(f, dtype=np.int64)
+    t_lo, t_hi, t_cen, t_perm = np.empty_like(lo), np.empty_like(hi), np.empty_like(cen), np.empty_like(perm)
 
     lo_parts, hi_parts, left_parts, start_parts, count_parts, depth_parts = [], [], [], [], [], []
     n_nodes = 1
@@ -120,46 +210,27 @@ def build_binned_sah(tri_lo: np.ndarray, tri_hi: np.ndarray, leaf_size: int) -> 
     level_count = np.full(1, f, np.int64)
     depth = 0
     while len(level_start):
-        idx = _gather_ranges(level_start, level_count)
-        offs = np.cumsum(level_count) - level_count
-        lo_parts.append(np.minimum.reduceat(lo_p[:, idx], offs, axis=1).T)
-        hi_parts.append(np.maximum.reduceat(hi_p[:, idx], offs, axis=1).T)
-        split = level_count > leaf_size
+        levels_needed = np.ceil(np.log2(np.maximum(level_count / leaf_size, 1.0))).astype(np.int64)
+        median = depth + 1 + levels_needed >= MAX_DEPTH - 1
+        node_lo, node_hi, n_left = _split_level(level_start, level_count, median, leaf_size,
+                                                lo, hi, cen, perm, t_lo, t_hi, t_cen, t_perm,
+                                                64 * numba.get_num_threads())
+        if np.any(n_left == -2):
+            raise RuntimeError("binned SAH: a node's partition disagrees with its bin counts (floating-point bug)")
+        split = n_left >= 0
         left = np.full(len(level_start), -1, np.int64)
+        left[split] = n_nodes + 2 * np.arange(int(split.sum()))
+        lo_parts.append(node_lo)
+        hi_parts.append(node_hi)
         start_parts.append(level_start)
         count_parts.append(level_count)
         depth_parts.append(np.full(len(level_start), depth, np.int64))
         left_parts.append(left)
-        if not split.any():
-            break
-        # Work only on the triangles of nodes being split.
-        s_start, s_count = level_start[split], level_count[split]
-        s_idx = _gather_ranges(s_start, s_count)
-        s_offs = np.cumsum(s_count) - s_count
-        seg = _segment_ids(s_count)
-        s_lo, s_hi, s_cen, s_tris = lo_p[:, s_idx], hi_p[:, s_idx], cen_p[:, s_idx], perm[s_idx]
-        cost, axis, sbin, bins_of = _best_binned_split(s_cen, s_lo, s_hi, seg, s_offs, s_count)
-        levels_needed = np.ceil(np.log2(np.maximum(s_count / leaf_size, 1.0))).astype(np.int64)
-        median = ~np.isfinite(cost) | (depth + 1 + levels_needed >= MAX_DEPTH - 1)
-        rank = np.arange(len(s_idx)) - s_offs[seg]
-        goes_left = np.where(median[seg], rank < (s_count // 2)[seg],
-                             bins_of[axis[seg], np.arange(len(s_idx))] <= sbin[seg])
-        # Stable partition of each node's range: left triangles first.
-        gl = goes_left.astype(np.int64)
-        excl_l = np.cumsum(gl) - gl
-        rank_l = excl_l - excl_l[s_offs][seg]
-        n_left = np.add.reduceat(gl, s_offs)
-        pos = s_start[seg] + np.where(goes_left, rank_l, n_left[seg] + (rank - rank_l))
-        perm[pos] = s_tris
-        lo_p[:, pos] = s_lo
-        hi_p[:, pos] = s_hi
-        cen_p[:, pos] = s_cen
         # Children of this level's split nodes, in order, form the next level.
-        n_split = len(s_start)
-        left[split] = n_nodes + 2 * np.arange(n_split)
-        n_nodes += 2 * n_split
-        level_start = np.stack([s_start, s_start + n_left], 1).reshape(-1)
-        level_count = np.stack([n_left, s_count - n_left], 1).reshape(-1)
+        s_start, s_count, s_left = level_start[split], level_count[split], n_left[split]
+        n_nodes += 2 * len(s_start)
+        level_start = np.stack([s_start, s_start + s_left], 1).reshape(-1)
+        level_count = np.stack([s_left, s_count - s_left], 1).reshape(-1)
         depth += 1
 
     return BinaryBVH(lo=np.concatenate(lo_parts), hi=np.concatenate(hi_parts),
