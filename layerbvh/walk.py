@@ -27,20 +27,48 @@ class DeviceLayout:
     treelet_count: int
 
 
+class RaySource:
+    """Origins and directions of a ray batch, read by ray slot inside the traversal kernel.
+
+    per_ray reads six slot-ordered arrays (its rays stay in slot order, so that streams). The
+    layer modes keep one 32-byte record per slot, [ox oy oz dx dy dz 0 0]: a sorted step reads
+    a ray's record with one cache line instead of carrying six arrays through every permutation."""
+
+    STRIDE = 8
+
+    def __init__(self, m, o, d, interleaved: bool):
+        self.m, self.interleaved = m, interleaved
+        if interleaved:
+            n = dr.width(o[0])
+            rec = dr.zeros(m.Float, n * self.STRIDE)
+            idx = dr.arange(m.UInt32, n) * self.STRIDE
+            for c, x in enumerate(tuple(o) + tuple(d)):
+                dr.scatter(rec, x, idx + c)
+            dr.eval(rec)
+            self.rec = rec
+        else:
+            self.o, self.d = tuple(o), tuple(d)
+
+    def load(self, slot):
+        m = self.m
+        if self.interleaved:
+            base = slot * self.STRIDE
+            x = [dr.gather(m.Float, self.rec, base + c) for c in range(6)]
+            return x[:3], x[3:]
+        return ([dr.gather(m.Float, a, slot) for a in self.o], [dr.gather(m.Float, a, slot) for a in self.d])
+
+
 @dataclass
 class RayState:
-    """Everything a ray carries from one wavefront step to the next (one array per field).
+    """What a ray carries from one wavefront step to the next (one array per field; origins and
+    directions stay in the batch's RaySource, read by slot).
 
     `link` is where the ray goes on (a node, leaf or exit link, or POP), `sp` the depth of its
     entry stack in global memory, `slot` its index in the caller's ray batch (and so which
-    entry stack it owns), `treelet` the treelet it traverses in the coming step."""
+    entry stack and ray record it owns), `treelet` the treelet it traverses in the coming step.
+    The work counters are None unless statistics were asked for: permuting them every step
+    costs as much as any other field."""
 
-    ox: object
-    oy: object
-    oz: object
-    dx: object
-    dy: object
-    dz: object
     t: object
     u: object
     v: object
@@ -50,10 +78,13 @@ class RayState:
     sp: object
     slot: object
     treelet: object
-    n_inner: object
-    n_leaf: object
-    n_tri: object
-    n_iter: object
+    n_inner: object = None
+    n_leaf: object = None
+    n_tri: object = None
+    n_iter: object = None
+
+    def fields(self) -> dict:
+        return {k: v for k, v in vars(self).items() if v is not None}
 
 
 def treelet_of(m, lay: DeviceLayout, link, active):
@@ -67,7 +98,8 @@ def treelet_of(m, lay: DeviceLayout, link, active):
 
 
 @dr.syntax
-def walk(m, lay: DeviceLayout, s: RayState, stack, cap: int, bounded: bool, any_hit: bool, count_work: bool = True):
+def walk(m, lay: DeviceLayout, rays: RaySource, s: RayState, stack, cap: int, bounded: bool, any_hit: bool,
+         count_work: bool = True):
     """Advance every ray of `s`, nearest child first, until it finishes or (when `bounded`)
     is about to continue in another treelet than `s.treelet`.
 
@@ -77,7 +109,7 @@ def walk(m, lay: DeviceLayout, s: RayState, stack, cap: int, bounded: bool, any_
     so the kernel has no read-after-write on global memory. Returns the new state, whether
     each ray finished, the treelet it continues in, and its local entries for write-back.
     """
-    ray = Ray(m, (s.ox, s.oy, s.oz), (s.dx, s.dy, s.dz))
+    ray = Ray(m, *rays.load(s.slot))
     # One spare slot: the unconditional write above the top must stay in bounds when full.
     loc_link = dr.alloc_local(m.UInt32, cap + 1, m.UInt32(0))
     loc_t = dr.alloc_local(m.Float, cap + 1, m.Float(0))
@@ -85,7 +117,9 @@ def walk(m, lay: DeviceLayout, s: RayState, stack, cap: int, bounded: bool, any_
     link, sp = m.UInt32(s.link), m.UInt32(s.sp)
     t_best, u_best, v_best = m.Float(s.t), m.Float(s.u), m.Float(s.v)
     prim_best, tri_best = m.UInt32(s.prim), m.UInt32(s.tri)
-    n_inner, n_leaf, n_tri, n_iter = m.UInt32(s.n_inner), m.UInt32(s.n_leaf), m.UInt32(s.n_tri), m.UInt32(s.n_iter)
+    zero = m.UInt32(0)
+    n_inner, n_leaf, n_tri, n_iter = (m.UInt32(c) if count_work else zero
+                                      for c in (s.n_inner, s.n_leaf, s.n_tri, s.n_iter))
     tri_cur, tri_end = m.UInt32(0), m.UInt32(0)
     done = m.Bool(False)
     next_treelet = m.UInt32(s.treelet)
@@ -171,8 +205,9 @@ def walk(m, lay: DeviceLayout, s: RayState, stack, cap: int, bounded: bool, any_
             next_treelet = dr.select(leave_pop, tre, dr.select(leave_exit, near & PAYLOAD_MASK, next_treelet))
             active &= ~(leave_pop | leave_exit)
 
-    out = RayState(ox=s.ox, oy=s.oy, oz=s.oz, dx=s.dx, dy=s.dy, dz=s.dz, t=t_best, u=u_best, v=v_best,
-                   prim=prim_best, tri=tri_best, link=link, sp=sp, slot=s.slot, treelet=next_treelet,
-                   n_inner=n_inner, n_leaf=n_leaf, n_tri=n_tri, n_iter=n_iter)
+    out = RayState(t=t_best, u=u_best, v=v_best, prim=prim_best, tri=tri_best, link=link, sp=sp, slot=s.slot,
+                   treelet=next_treelet)
+    if count_work:
+        out.n_inner, out.n_leaf, out.n_tri, out.n_iter = n_inner, n_leaf, n_tri, n_iter
     local = [(m.UInt32(loc_link[k]), m.Float(loc_t[k])) for k in range(cap)]
     return out, done, nl, local

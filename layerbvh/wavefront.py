@@ -6,7 +6,7 @@ import time
 import drjit as dr
 
 from .stats import TraceStats
-from .walk import NO_HIT, DeviceLayout, RayState, walk
+from .walk import NO_HIT, DeviceLayout, RaySource, RayState, walk
 
 MODES = ("per_ray", "layer_sorted", "layer_unsorted")
 ENTRY_BYTES = 8  # one entry-stack slot: link (uint32) + entry distance (float32)
@@ -15,19 +15,19 @@ ENTRY_BYTES = 8  # one entry-stack slot: link (uint32) + entry distance (float32
 TAIL_RAYS = 2048
 
 
-def _initial_state(m, o, d, tmax) -> RayState:
-    n = dr.width(o[0])
+def _initial_state(m, n, tmax, count_work: bool) -> RayState:
     zero = dr.zeros(m.UInt32, n)
-    return RayState(ox=o[0], oy=o[1], oz=o[2], dx=d[0], dy=d[1], dz=d[2],
-                    t=m.Float(tmax), u=dr.zeros(m.Float, n), v=dr.zeros(m.Float, n),
-                    prim=dr.full(m.UInt32, 0xFFFFFFFF, n), tri=dr.full(m.UInt32, NO_HIT, n),
-                    link=zero, sp=zero, slot=dr.arange(m.UInt32, n), treelet=zero,
-                    n_inner=zero, n_leaf=zero, n_tri=zero, n_iter=zero)
+    s = RayState(t=m.Float(tmax), u=dr.zeros(m.Float, n), v=dr.zeros(m.Float, n),
+                 prim=dr.full(m.UInt32, 0xFFFFFFFF, n), tri=dr.full(m.UInt32, NO_HIT, n),
+                 link=zero, sp=zero, slot=dr.arange(m.UInt32, n), treelet=zero)
+    if count_work:
+        s.n_inner, s.n_leaf, s.n_tri, s.n_iter = zero, zero, zero, zero
+    return s
 
 
 def _take(m, s: RayState, idx) -> RayState:
     """The rays `idx` of `s`, physically copied so the next step reads them sequentially."""
-    return RayState(**{k: dr.gather(type(v), v, idx) for k, v in vars(s).items()})
+    return RayState(**{k: dr.gather(type(v), v, idx) for k, v in s.fields().items()})
 
 
 class Results:
@@ -49,8 +49,9 @@ class Results:
     def write(self, s: RayState, mask):
         for dst, src in ((self.t, s.t), (self.u, s.u), (self.v, s.v), (self.tri, s.tri)):
             dr.scatter(dst, src, s.slot, mask)
-        for dst, src in zip(self.work, (s.n_inner, s.n_leaf, s.n_tri, s.n_iter)):
-            dr.scatter(dst, src, s.slot, mask)
+        if s.n_iter is not None:
+            for dst, src in zip(self.work, (s.n_inner, s.n_leaf, s.n_tri, s.n_iter)):
+                dr.scatter(dst, src, s.slot, mask)
 
 
 def _sync():
@@ -64,16 +65,17 @@ def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool, tai
     n = dr.width(o[0])
     stats = TraceStats(mode=mode, rays=n)
     res = Results(m, n)
-    s = _initial_state(m, o, d, tmax)
+    s = _initial_state(m, n, tmax, count_work)
     # Invalid rays (NaN/Inf/zero direction) are misses and never enter a kernel.
     idx = dr.compress(valid)
     s = _take(m, s, idx)
     if dr.width(idx) == 0:  # no valid ray: Dr.Jit kernels cannot run on empty arrays
         return res, stats
+    rays = RaySource(m, o, d, interleaved=mode != "per_ray")
     t0 = _sync()
     if mode == "per_ray":
         cap = max(lay.depth, 1)
-        out, done, _, _ = walk(m, lay, s, None, cap, False, any_hit, count_work)
+        out, done, _, _ = walk(m, lay, rays, s, None, cap, False, any_hit, count_work)
         res.write(out, done)
         dr.eval(res.t, res.u, res.v, res.tri, res.work)
         t1 = _sync()
@@ -92,7 +94,7 @@ def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool, tai
     st_t = dr.zeros(m.Float, n * cap_global)
     finished = lay.treelet_count  # bucket after every treelet: finished rays sort last
     buckets = 1 << max(1, (finished).bit_length())
-    state_bytes = 19 * 4
+    state_bytes = len(s.fields()) * 4
     peak = 0
     n_active = dr.width(s.t)
     while n_active > 0:
@@ -100,14 +102,14 @@ def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool, tai
         ta = _sync()
         if n_active <= tail_rays and stats.steps > 0:
             # Same nearest-first order as the steps, so the same hits and work counts.
-            out, done, _, _ = walk(m, lay, s, (st_link, st_t, cap_global), cap_global, False, any_hit, count_work)
+            out, done, _, _ = walk(m, lay, rays, s, (st_link, st_t, cap_global), cap_global, False, any_hit, count_work)
             res.write(out, done)
             dr.eval(res.t, res.u, res.v, res.tri, res.work)
             stats.time_traverse_s += _sync() - ta
             stats.tail_rays = n_active
             stats.steps += 1
             break
-        out, done, nl, local = walk(m, lay, s, (st_link, st_t, cap_global), cap_local, True, any_hit, count_work)
+        out, done, nl, local = walk(m, lay, rays, s, (st_link, st_t, cap_global), cap_local, True, any_hit, count_work)
         dr.eval(out, done, nl, local)
         tb = _sync()
         # Write back the entries pushed in this step above the ray's global stack.
@@ -118,10 +120,9 @@ def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool, tai
             dr.scatter(st_t, lt, pos, mask)
         out.sp = out.sp + nl
         res.write(out, done)
-        dr.eval(st_link, st_t, out.sp, res.t, res.u, res.v, res.tri, res.work)
-        tc = _sync()
         keys = dr.select(done, m.UInt32(finished), out.treelet)
-        dr.eval(keys)
+        dr.eval(st_link, st_t, out.sp, keys, res.t, res.u, res.v, res.tri, res.work)
+        tc = _sync()
         n_active = n_active - int(dr.count(done)[0])
         if n_active == 0:
             stats.steps += 1
@@ -144,5 +145,6 @@ def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool, tai
         stats.time_traverse_s += tb - ta
         stats.time_other_s += (tc - tb) + (te - td)
         stats.time_sort_s += td - tc
-    stats.work_bytes = peak + n * cap_global * ENTRY_BYTES + n * 4 * 10
+    # entry stacks, ray records (RaySource), ray in/out arrays
+    stats.work_bytes = peak + n * cap_global * ENTRY_BYTES + n * 4 * RaySource.STRIDE + n * 4 * 10
     return res, stats

@@ -34,7 +34,10 @@ MIB = 1 << 20
 
 @dataclass
 class Config:
-    """One timed configuration: `run()` traces every ray once and returns (seconds, prim, stats)."""
+    """One timed configuration: `run(stats)` traces every ray once and returns (seconds, prim, stats).
+
+    The warm-up run counts work (stats=True); the timed runs do not, as a renderer would not:
+    `stats` keeps the warm-up's work counts, `time_stats` a timed run's steps and time split."""
 
     mode: str
     height: int | None
@@ -44,6 +47,7 @@ class Config:
     times: list = field(default_factory=list)
     prim: np.ndarray | None = None
     stats: object = None
+    time_stats: object = None
     rss_peak: int | None = None
     rss_extra: int | None = None
 
@@ -138,7 +142,7 @@ def embree_config(scene, o: np.ndarray, d: np.ndarray, tmax, any_hit: bool, buil
         dr.eval(pi.t, pi.prim_index, pi.prim_uv, pi.shape)
         return pi
 
-    def run():
+    def run(stats=True):
         secs, pi = _timed(trace)
         if any_hit:
             return secs, lambda: pi.numpy().astype(np.uint32), None
@@ -147,17 +151,17 @@ def embree_config(scene, o: np.ndarray, d: np.ndarray, tmax, any_hit: bool, buil
 
 
 def layer_config(bvh, mode: str, height: int, o_dev, d_dev, tmax_dev, any_hit: bool, hint: str = "") -> Config:
-    def trace():
+    def trace(stats):
         if any_hit:
-            occ = bvh.occluded(o_dev, d_dev, tmax_dev, mode=mode, hint=hint)
+            occ = bvh.occluded(o_dev, d_dev, tmax_dev, mode=mode, hint=hint, stats=stats)
             dr.eval(occ)
             return occ, bvh.last_occluded_stats
-        h = bvh.trace(o_dev, d_dev, tmax_dev, mode=mode, hint=hint)
+        h = bvh.trace(o_dev, d_dev, tmax_dev, mode=mode, hint=hint, stats=stats)
         dr.eval(h.t, h.prim, h.u, h.v)
         return h, h.stats
 
-    def run():
-        secs, (h, stats) = _timed(trace)
+    def run(stats=True):
+        secs, (h, stats) = _timed(lambda: trace(stats))
         if any_hit:
             return secs, lambda: h.numpy().astype(np.uint32), stats
         return secs, h.prim.numpy, stats
@@ -176,11 +180,14 @@ def make_configs(scene, embree_build_s, bvhs: dict, o, d, tmax, any_hit: bool, b
     first = next(iter(bvhs))
     configs = [embree_config(scene, o, d, tmax, any_hit, embree_build_s)]
     # per_ray on every layout too: the treelet layout orders its nodes, so it is part of the baseline.
-    for h, bvh in bvhs.items():
-        configs += [layer_config(bvh, mode, h, o_dev, d_dev, tmax_dev, any_hit) for mode in ("per_ray",) + LAYER_MODES]
-    # auto on the default height (its warm-up run is where it times per_ray against layer_sorted)
+    # auto on the default height (its warm-up run is where it times per_ray against layer_sorted),
+    # placed between the two modes it picks from so that every round runs the three back to back
     h_auto = AUTO_HEIGHT if AUTO_HEIGHT in bvhs else first
-    configs.append(layer_config(bvhs[h_auto], "auto", h_auto, o_dev, d_dev, tmax_dev, any_hit, hint=kind))
+    for h, bvh in bvhs.items():
+        configs.append(layer_config(bvh, "per_ray", h, o_dev, d_dev, tmax_dev, any_hit))
+        if h == h_auto:
+            configs.append(layer_config(bvh, "auto", h, o_dev, d_dev, tmax_dev, any_hit, hint=kind))
+        configs += [layer_config(bvh, mode, h, o_dev, d_dev, tmax_dev, any_hit) for mode in LAYER_MODES]
     return configs
 
 
@@ -224,9 +231,9 @@ def measure(configs: list[Config], runs: int) -> None:
     for r in range(runs):
         k = r % len(configs)
         for c in configs[k:] + configs[:k]:
-            secs, _, stats = c.run()
+            secs, _, stats = c.run(stats=False)
             c.times.append(secs)
-            c.stats = stats if stats is not None else c.stats  # time split of a warm run
+            c.time_stats = stats  # steps and time split of a warm run without work counting
 
 
 # -- figures ----------------------------------------------------------------------------------------
@@ -263,8 +270,13 @@ def result_rows(mesh: str, tris: int, kind: str, configs: list[Config], n: int, 
     rows = []
     for c in configs:
         s = c.stats
-        # auto against the faster of the two modes it chooses between (same layout, same run)
-        best_of = max(med[f"per_ray h={c.height}"], med[f"layer_sorted h={c.height}"]) if c.mode == "auto" else None
+        # auto against the faster (by median) of the two modes it chooses between, same layout:
+        # the median of per-round ratios, since auto runs next to both in every round and a
+        # round's neighbours share the machine's state of the moment
+        best_of = None
+        if c.mode == "auto":
+            faster = max((f"per_ray h={c.height}", f"layer_sorted h={c.height}"), key=lambda k: med[k])
+            best_of = float(np.median([a / b for a, b in zip(mrays[c.label], mrays[faster])]))
         rows.append({
             "mesh": mesh, "triangles": tris, "rays": kind, "mode": c.mode, "treelet_height": c.height,
             "mrays_s": med[c.label], "runs": mrays[c.label], "build_s": c.build_s,
@@ -280,11 +292,21 @@ def result_rows(mesh: str, tris: int, kind: str, configs: list[Config], n: int, 
             "prim_mismatch_vs_per_ray": diff[c.label],
             "rss_peak_bytes": c.rss_peak, "rss_extra_bytes": c.rss_extra,
             "auto_choice": s.mode if c.mode == "auto" and s else None,
-            "ratio_best_of_two": med[c.label] / best_of if best_of else None,
-            "time_split_s": None if s is None else {k: getattr(s, f"time_{k}_s") for k in
-                                                    ("sort", "treelet", "leaf", "other", "total")},
+            "ratio_best_of_two": best_of,
+            "time_split_s": time_split(s, c.time_stats),
         })
     return rows
+
+
+def time_split(work, timed) -> dict | None:
+    """Seconds per stage of a timed run; its kernel time is split into treelet and leaf work by
+    the warm-up's share of loop iterations spent on triangles (the timed run counts no work)."""
+    if work is None:
+        return None
+    t = timed or work
+    share = work.triangles / work.iterations if work.iterations else 0.0
+    return {"sort": t.time_sort_s, "treelet": t.time_traverse_s * (1 - share), "leaf": t.time_traverse_s * share,
+            "other": t.time_other_s, "total": t.time_total_s}
 
 
 def mode_label(r: dict) -> str:

@@ -273,7 +273,7 @@ def document(bench: list[dict], scaling: dict | None, fig_dir: str, converge: li
     parts += ["", "## Headline", "",
               "Best treelet height of `layer_sorted` per ray set, against the best layout of `per_ray` (the same "
               "BVH, one kernel, a per-ray stack) and Embree. `auto` runs on the h=4 layout (the integrator's "
-              "default) and is compared with the faster of `per_ray` and `layer_sorted` on that layout.", "",
+              "default) and is compared with the faster (by median) of `per_ray` and `layer_sorted` on that layout: the median over rounds of auto's throughput over that mode's in the same round (the three run back to back).", "",
               headline_table(rows), "",
               f"![throughput against treelet height]({fig_dir}/throughput_vs_height.png)", "",
               "## Time per stage", "",
