@@ -9,7 +9,7 @@ import numpy as np
 
 from . import backend as be
 from .layout import TRI_FLOATS, LayerLayout, check_layout, to_layer_layout
-from .sah import BinaryBVH, build_binned_sah, load_kernels, triangle_bounds
+from .sah import BinaryBVH, build_binned_sah, triangle_bounds
 from .stats import TraceStats
 from .validate import check_mesh, check_param
 from .walk import NO_HIT, DeviceLayout
@@ -29,6 +29,24 @@ AUTO_MIN_RAYS = 1 << 16
 AUTO_WARMUP_RAYS = 4096  # compiles both modes' kernels before anything is timed
 AUTO_ROUNDS = 3  # timed rounds, alternating which mode goes first; the median decides
 AUTO_MARGIN = 0.05  # layer_sorted must be this much faster: it also needs far more memory
+
+
+_builder_ready = False
+
+
+def _load_builder_kernels() -> float:
+    """Compile the builder's and the layout's numba kernels (or load them from numba's on-disk
+    cache) by building a tiny mesh; the seconds it took, 0.0 once done in this process. Kept
+    out of the build time, as Dr.Jit's kernel compilation is kept out of trace times."""
+    global _builder_ready
+    if _builder_ready:
+        return 0.0
+    t0 = time.perf_counter()
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
+    f = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3], [0, 1, 2], [0, 2, 3]], np.int64)
+    to_layer_layout(build_binned_sah(*triangle_bounds(v, f), 1), v, f, 1)
+    _builder_ready = True
+    return time.perf_counter() - t0
 
 
 @dataclass
@@ -76,7 +94,7 @@ class LayerBVH:
         self.tail_rays = TAIL_RAYS
         self.auto_choices = {}  # (query, hint, size class) -> {"mode", "seconds"}: auto's decisions
         self.m = be.module(self.backend)
-        kernel_load_s = load_kernels() if len(f) else 0.0
+        kernel_load_s = _load_builder_kernels() if len(f) else 0.0
         t0 = time.perf_counter()
         self.binary: BinaryBVH | None = build_binned_sah(*triangle_bounds(v, f), leaf_size) if len(f) else None
         t1 = time.perf_counter()

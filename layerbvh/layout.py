@@ -170,13 +170,6 @@ def _triangle_records(vertices, faces, tri_ids, out, out_u32, out_f64):
         out_f64[j, 7] = e1x * e2y - e1y * e2x
 
 
-def warm_triangle_records(vertices, faces) -> None:
-    """Compile (or load) _triangle_records' kernel on a small mesh."""
-    ids = np.arange(len(faces), dtype=np.int64)
-    tri = np.zeros((len(ids), TRI_FLOATS), np.float32)
-    _triangle_records(vertices, faces, ids, tri, tri.view(np.uint32), tri.view(np.float64))
-
-
 def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
     offs = np.cumsum(counts) - counts
     return np.arange(int(counts.sum())) - np.repeat(offs - starts, counts)

@@ -3,8 +3,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import time
-
 import numba
 import numpy as np
 
@@ -51,6 +49,12 @@ def triangle_bounds(vertices, faces):
     return lo, hi
 
 
+@numba.njit(cache=True, inline="always")
+def _bin_of(x, cmin, scale, nb):
+    """Bin of centroid coordinate x; binning and partition must both use exactly this."""
+    return min(max(int((x - cmin) * scale), 0), nb - 1)
+
+
 @numba.njit(cache=True)
 def _best_split(s, c, lo, hi, cen, cmin, cmax, blo, bhi, bcnt, rarea, rcnt):
     """SAH-best split of triangles s..s+c (centroid bounds cmin, cmax) over binned centroids.
@@ -73,7 +77,7 @@ def _best_split(s, c, lo, hi, cen, cmin, cmax, blo, bhi, bcnt, rarea, rcnt):
                 bhi[a, b, k] = -np.inf
     for t in range(s, s + c):
         for a in range(3):
-            b = min(max(int((cen[t, a] - cmin[a]) * scale[a]), 0), nb - 1)
+            b = _bin_of(cen[t, a], cmin[a], scale[a], nb)
             bcnt[a, b] += 1
             for k in range(3):
                 blo[a, b, k] = min(blo[a, b, k], lo[t, k])
@@ -111,7 +115,8 @@ def _split_level(start, count, median, leaf_size, lo, hi, cen, perm, t_lo, t_hi,
 
     Each node's triangle range [start, start+count) of (lo, hi, cen, perm) is partitioned in
     place, stably, left child's triangles first. Returns (node lo, node hi, left count; -1 for
-    leaves, -2 if the partition disagrees with the bin counts). Nodes are disjoint ranges, so they run in parallel; chunks own their scratch."""
+    leaves, -2 if the partition disagrees with the bin counts). Nodes are disjoint ranges, so
+    they run in parallel; chunks own their scratch."""
     k = len(start)
     node_lo = np.empty((k, 3), np.float32)
     node_hi = np.empty((k, 3), np.float32)
@@ -137,10 +142,10 @@ def _split_level(start, count, median, leaf_size, lo, hi, cen, perm, t_lo, t_hi,
                     cmax[a] = max(cmax[a], cen[t, a])
             if c <= leaf_size:
                 continue
-            axis, sbin, nb, scale, nl = -1, 0, 0, cmin, c // 2
+            axis, sbin, nb, scale, nl = -1, 0, 0, cmax, 0  # scale unused without an axis
             if not median[i]:
                 axis, sbin, nb, scale, nl = _best_split(s, c, lo, hi, cen, cmin, cmax, blo, bhi, bcnt, rarea, rcnt)
-            if axis < 0:  # no SAH split separates the centroids: halve the range
+            if axis < 0:  # median split, or no SAH split separates the centroids: halve the range
                 nl = c // 2
             # Stable partition through the scratch copies, then back.
             li, ri = s, s + nl
@@ -148,7 +153,7 @@ def _split_level(start, count, median, leaf_size, lo, hi, cen, perm, t_lo, t_hi,
                 if axis < 0:
                     left = t - s < nl
                 else:
-                    left = min(max(int((cen[t, axis] - cmin[axis]) * scale[axis]), 0), nb - 1) <= sbin
+                    left = _bin_of(cen[t, axis], cmin[axis], scale[axis], nb) <= sbin
                 if left:
                     d = li
                     li += 1
@@ -169,25 +174,6 @@ def _split_level(start, count, median, leaf_size, lo, hi, cen, perm, t_lo, t_hi,
     return node_lo, node_hi, n_left
 
 
-_kernels_ready = False
-
-
-def load_kernels() -> float:
-    """Compile the builder's numba kernels (or load them from numba's on-disk cache) on a tiny
-    mesh; the seconds it took, 0.0 once done. Kept out of the build time like kernel compilation."""
-    global _kernels_ready
-    if _kernels_ready:
-        return 0.0
-    t0 = time.perf_counter()
-    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
-    f = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3], [0, 1, 2], [0, 2, 3]], np.int64)
-    build_binned_sah(*triangle_bounds(v, f), 1)
-    from .layout import warm_triangle_records  # the layout's kernel, compiled alike
-    warm_triangle_records(v, f)
-    _kernels_ready = True
-    return time.perf_counter() - t0
-
-
 def build_binned_sah(tri_lo: np.ndarray, tri_hi: np.ndarray, leaf_size: int) -> BinaryBVH:
     """Level-synchronous binned SAH: each level's nodes are split in parallel (numba kernels).
 
@@ -197,9 +183,10 @@ def build_binned_sah(tri_lo: np.ndarray, tri_hi: np.ndarray, leaf_size: int) -> 
     """
     f = len(tri_lo)
     # Triangle bounds and centroids are kept in `perm` order, so each node reads its own
-    # contiguous range; the t_* arrays are the partition's scratch.
-    lo = np.ascontiguousarray(tri_lo, np.float32)
-    hi = np.ascontiguousarray(tri_hi, np.float32)
+    # contiguous range; the t_* arrays are the partition's scratch. Copies: the partition
+    # reorders them in place and the caller's arrays must stay as they were.
+    lo = np.array(tri_lo, np.float32, order="C")
+    hi = np.array(tri_hi, np.float32, order="C")
     cen = (lo + hi) * np.float32(0.5)
     perm = np.arange(f, dtype=np.int64)
     t_lo, t_hi, t_cen, t_perm = np.empty_like(lo), np.empty_like(hi), np.empty_like(cen), np.empty_like(perm)
