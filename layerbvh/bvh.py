@@ -49,6 +49,48 @@ def _load_builder_kernels() -> float:
     return time.perf_counter() - t0
 
 
+
+def _width(x) -> int:
+    return dr.width(x) if be.backend_of(x) is not None else len(x)
+
+
+def _column(x, name: str, backend: str):
+    """One per-ray float input as a Dr.Jit Float (any width) or a 1-D float32 numpy array."""
+    kind = be.backend_of(x)
+    if kind is not None:
+        if kind != backend:
+            raise ValueError(f"{name} is on the {kind} backend, this BVH on {backend}")
+        return be.module(backend).Float(x)
+    a = np.asarray(x, np.float32)
+    if a.ndim > 1:
+        raise ValueError(f"{name} must be a scalar or have shape (N,), got {a.shape}")
+    return a.reshape(-1)
+
+
+def _components(x, name: str, backend: str) -> list:
+    """The three components of origins or directions: a Dr.Jit 3-vector (components of any
+    width), or numpy of shape (N, 3) or (3,)."""
+    if be.backend_of(x) is not None:
+        if len(x) != 3:
+            raise ValueError(f"{name} must have 3 components, got {len(x)}")
+        return [_column(x[c], f"{name}[{c}]", backend) for c in range(3)]
+    a = np.asarray(x, np.float32)
+    if a.shape == (3,):
+        a = a[None]
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {a.shape}")
+    return [np.ascontiguousarray(a[:, c]) for c in range(3)]
+
+
+def _broadcast(m, x, n: int):
+    """A Dr.Jit Float of width n from a column of width n or 1."""
+    if be.backend_of(x) is None:
+        x = m.Float(x)
+    if dr.width(x) == n:
+        return x
+    return dr.gather(m.Float, x, dr.zeros(m.UInt32, n))
+
+
 @dataclass
 class Hits:
     """Closest hits, in the caller's array kind. Miss: t = inf, prim = 0xFFFFFFFF.
@@ -122,43 +164,37 @@ class LayerBVH:
 
     # -- tracing ---------------------------------------------------------------------------------
     def _rays(self, origins, directions, tmax):
-        """Rays as (o, d, tmax, valid) Dr.Jit arrays, and a function turning results back into the input's kind."""
+        """Rays as (o, d, tmax, valid) Dr.Jit arrays of one common width n, and a function turning
+        results back into the input's kind (Dr.Jit if origins or directions are, else numpy).
+
+        Every input is broadcast to the ray count: a width-1 Dr.Jit array (Mitsuba's camera rays
+        carry `maxt` as one, a broadcast scalar), a numpy (3,) point or vector, a Python scalar.
+        The batching path gathers each input per ray, so a width-1 array left as it is would
+        be read out of bounds for every ray but the first. Any other width than 1 or n is a
+        ValueError naming the argument and both widths."""
         m = self.m
-        kind = be.backend_of(origins)
-        if kind is None:
-            o = np.asarray(origins, np.float32)
-            d = np.asarray(directions, np.float32)
-            if o.ndim != 2 or o.shape[1] != 3:
-                raise ValueError(f"origins must have shape (N, 3), got {o.shape}")
-            if d.shape != o.shape:
-                raise ValueError(f"directions must have shape {o.shape} like origins, got {d.shape}")
-            n = len(o)
-            oj = [m.Float(np.ascontiguousarray(o[:, c])) for c in range(3)]
-            dj = [m.Float(np.ascontiguousarray(d[:, c])) for c in range(3)]
+        parts = {"origins": _components(origins, "origins", self.backend),
+                 "directions": _components(directions, "directions", self.backend)}
+        if tmax is not None:
+            parts["tmax"] = [_column(tmax, "tmax", self.backend)]
+        n = max(_width(x) for xs in parts.values() for x in xs)
+        if any(_width(x) == 0 for xs in parts.values() for x in xs):
+            n = 0  # an empty input is an empty batch (a width-1 input does not make it one ray)
+        for name, xs in parts.items():
+            for c, x in enumerate(xs):
+                w = _width(x)
+                if w not in (1, n):
+                    comp = f"{name}[{c}]" if name != "tmax" else name
+                    raise ValueError(f"{comp} has {w} entries, the other ray inputs {n}: each input must have "
+                                     f"one entry per ray or a single one for all rays")
+        bcast = (lambda x: _broadcast(m, x, n))
+        oj = [bcast(x) for x in parts["origins"]]
+        dj = [bcast(x) for x in parts["directions"]]
+        tm = bcast(parts["tmax"][0]) if "tmax" in parts else dr.full(m.Float, dr.inf, n)
+        on_device = be.backend_of(origins) is not None or be.backend_of(directions) is not None
 
-            def back(x):
-                return x.numpy()
-        else:
-            if kind != self.backend:
-                raise ValueError(f"rays are on the {kind} backend, this BVH on {self.backend}")
-            oj = [m.Float(origins[c]) for c in range(3)]
-            dj = [m.Float(directions[c]) for c in range(3)]
-            n = dr.width(oj[0])
-
-            def back(x):
-                return x
-        if tmax is None:
-            tm = dr.full(m.Float, dr.inf, n)
-        elif be.backend_of(tmax) is not None:
-            tm = m.Float(tmax)
-        else:
-            tv = np.asarray(tmax, np.float32)
-            if tv.ndim == 0:
-                tm = dr.full(m.Float, float(tv), n)
-            elif tv.shape == (n,):
-                tm = m.Float(tv)
-            else:
-                raise ValueError(f"tmax must be a scalar or shape ({n},), got {tv.shape}")
+        def back(x):
+            return x if on_device else x.numpy()
         if n == 0:  # Dr.Jit compares a 0-sized array with a literal as a size mismatch
             return oj, dj, tm, dr.zeros(m.Bool, 0), n, back
         finite = dr.isfinite(oj[0]) & dr.isfinite(oj[1]) & dr.isfinite(oj[2])

@@ -84,14 +84,15 @@ class SceneTracer:
     Built once per scene; every query returns Mitsuba types (PreliminaryIntersection3f, Bool)."""
 
     def __init__(self, scene, traversal: str = "auto", treelet_height: int = 4, leaf_size: int = 4,
-                 count_work: bool = True):
+                 count_work: bool = True, batch_rays: int = layerbvh.bvh.BATCH_RAYS):
         t0 = time.perf_counter()
         self.scene = scene
         self.geometry = collect_geometry(scene)
         self.traversal = traversal
         self.count_work = count_work
         self.bvh = layerbvh.build(self.geometry.vertices, self.geometry.faces, treelet_height=treelet_height,
-                                  leaf_size=leaf_size, backend="cuda" if mi.variant().startswith("cuda") else "llvm")
+                                  leaf_size=leaf_size, backend="cuda" if mi.variant().startswith("cuda") else "llvm",
+                                  batch_rays=batch_rays)
         self.tri_shape = mi.UInt32(self.geometry.tri_shape)
         self.tri_local = mi.UInt32(self.geometry.tri_local)
         self.build_s = time.perf_counter() - t0

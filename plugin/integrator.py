@@ -9,6 +9,8 @@ import mitsuba as mi
 
 import layerbvh
 
+from layerbvh.validate import check_param
+
 from .adapter import SceneTracer
 from .record import bounce_kind
 
@@ -44,7 +46,8 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
     as in ``path``; ``traversal`` (``auto`` | ``per_ray`` | ``layer_sorted`` | ``layer_unsorted``,
     default ``auto``: per ray batch, the faster of per_ray and layer_sorted, timed once per kind
     of batch), ``treelet_height`` (4), ``leaf_size`` (4), ``stats`` (false: collect
-    traversal work counts), ``adaptive`` (true: leave out what the scene does not need).
+    traversal work counts), ``adaptive`` (true: leave out what the scene does not need),
+    ``batch_rays`` (2^20: rays traced per batch; bounds the traversal's work memory).
     """
 
     def __init__(self, props: mi.Properties):
@@ -57,10 +60,12 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
         self.leaf_size = props.get("leaf_size", 4)
         self.stats = props.get("stats", False)
         self.adaptive = props.get("adaptive", True)
+        self.batch_rays = props.get("batch_rays", layerbvh.bvh.BATCH_RAYS)
         if self.max_depth < -1:
             raise ValueError(f"layerbvh integrator: max_depth must be -1 (infinite) or >= 0, got {self.max_depth}")
         if self.rr_depth <= 0:
             raise ValueError(f"layerbvh integrator: rr_depth must be > 0, got {self.rr_depth}")
+        check_param("layerbvh integrator: batch_rays", self.batch_rays, 1, 1 << 31)
         if self.traversal not in layerbvh.TRACE_MODES:
             raise ValueError(f"layerbvh integrator: traversal must be one of {', '.join(layerbvh.TRACE_MODES)}; "
                              f"got {self.traversal!r}")
@@ -72,7 +77,8 @@ class LayerBVHIntegrator(mi.SamplingIntegrator):
         key = id(scene)
         t = self._tracers.get(key)
         if t is None or t.scene is not scene:
-            t = SceneTracer(scene, self.traversal, self.treelet_height, self.leaf_size, count_work=self.stats)
+            t = SceneTracer(scene, self.traversal, self.treelet_height, self.leaf_size, count_work=self.stats,
+                            batch_rays=self.batch_rays)
             t.features = plan_features(scene, t, self)
             self._tracers = {key: t}
         return t
