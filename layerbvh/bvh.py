@@ -8,12 +8,13 @@ import drjit as dr
 import numpy as np
 
 from . import backend as be
-from .layout import TRI_FLOATS, LayerLayout, check_layout, to_layer_layout
+from .auto import auto_mode
+from .inputs import check_mesh, check_param, rays as _ray_inputs
+from .layout import TRI_FLOATS, DeviceLayout, LayerLayout, check_layout, to_layer_layout
 from .sah import BinaryBVH, build_binned_sah, triangle_bounds
-from .stats import TraceStats
-from .validate import check_mesh, check_param
-from .walk import NO_HIT, DeviceLayout
-from .wavefront import MODES, TAIL_RAYS, Results, trace as _trace
+from .state import NO_HIT, Results
+from .stats import BVHStats, TraceStats
+from .wavefront import MODES, TAIL_RAYS, trace as _trace
 
 MISS = 0xFFFFFFFF
 # Rays traced per batch. The layer modes' work memory is about batch x (tree depth x 8 B of
@@ -21,14 +22,6 @@ MISS = 0xFFFFFFFF
 BATCH_RAYS = 1 << 20
 AUTO = "auto"
 TRACE_MODES = MODES + (AUTO,)
-# auto: below this many rays a batch goes per_ray without asking (a few rays per treelet cannot
-# repay a sort and a launch per step); above it the first batch of each size class is timed both
-# ways on a whole batch (up to batch_rays of its rays: sorting pays off with the number of rays
-# per treelet, so a smaller sample would favour per_ray) and the faster mode is kept.
-AUTO_MIN_RAYS = 1 << 16
-AUTO_WARMUP_RAYS = 4096  # compiles both modes' kernels before anything is timed
-AUTO_ROUNDS = 3  # timed rounds, alternating which mode goes first; the median decides
-AUTO_MARGIN = 0.05  # layer_sorted must be this much faster: it also needs far more memory
 
 
 _builder_ready = False
@@ -50,47 +43,6 @@ def _load_builder_kernels() -> float:
 
 
 
-def _width(x) -> int:
-    return dr.width(x) if be.backend_of(x) is not None else len(x)
-
-
-def _column(x, name: str, backend: str):
-    """One per-ray float input as a Dr.Jit Float (any width) or a 1-D float32 numpy array."""
-    kind = be.backend_of(x)
-    if kind is not None:
-        if kind != backend:
-            raise ValueError(f"{name} is on the {kind} backend, this BVH on {backend}")
-        return be.module(backend).Float(x)
-    a = np.asarray(x, np.float32)
-    if a.ndim > 1:
-        raise ValueError(f"{name} must be a scalar or have shape (N,), got {a.shape}")
-    return a.reshape(-1)
-
-
-def _components(x, name: str, backend: str) -> list:
-    """The three components of origins or directions: a Dr.Jit 3-vector (components of any
-    width), or numpy of shape (N, 3) or (3,)."""
-    if be.backend_of(x) is not None:
-        if len(x) != 3:
-            raise ValueError(f"{name} must have 3 components, got {len(x)}")
-        return [_column(x[c], f"{name}[{c}]", backend) for c in range(3)]
-    a = np.asarray(x, np.float32)
-    if a.shape == (3,):
-        a = a[None]
-    if a.ndim != 2 or a.shape[1] != 3:
-        raise ValueError(f"{name} must have shape (N, 3), got {a.shape}")
-    return [np.ascontiguousarray(a[:, c]) for c in range(3)]
-
-
-def _broadcast(m, x, n: int):
-    """A Dr.Jit Float of width n from a column of width n or 1."""
-    if be.backend_of(x) is None:
-        x = m.Float(x)
-    if dr.width(x) == n:
-        return x
-    return dr.gather(m.Float, x, dr.zeros(m.UInt32, n))
-
-
 @dataclass
 class Hits:
     """Closest hits, in the caller's array kind. Miss: t = inf, prim = 0xFFFFFFFF.
@@ -101,26 +53,6 @@ class Hits:
     u: object
     v: object
     stats: TraceStats
-
-
-@dataclass
-class BVHStats:
-    triangles: int
-    nodes: int
-    leaves: int
-    treelets: int
-    depth: int
-    treelet_height: int
-    leaf_size: int
-    treelet_node_counts: list
-    bytes: dict
-    build_s: float
-    layout_s: float
-    kernel_load_s: float = 0.0  # first build in a process: compiling/loading the builder's kernels
-
-    @property
-    def total_bytes(self) -> int:
-        return sum(self.bytes.values())
 
 
 class LayerBVH:
@@ -163,95 +95,15 @@ class LayerBVH:
             check_layout(self.layout, len(self.faces))
 
     # -- tracing ---------------------------------------------------------------------------------
-    def _rays(self, origins, directions, tmax):
-        """Rays as (o, d, tmax, valid) Dr.Jit arrays of one common width n, and a function turning
-        results back into the input's kind (Dr.Jit if origins or directions are, else numpy).
-
-        Every input is broadcast to the ray count: a width-1 Dr.Jit array (Mitsuba's camera rays
-        carry `maxt` as one, a broadcast scalar), a numpy (3,) point or vector, a Python scalar.
-        The batching path gathers each input per ray, so a width-1 array left as it is would
-        be read out of bounds for every ray but the first. Any other width than 1 or n is a
-        ValueError naming the argument and both widths."""
-        m = self.m
-        parts = {"origins": _components(origins, "origins", self.backend),
-                 "directions": _components(directions, "directions", self.backend)}
-        if tmax is not None:
-            parts["tmax"] = [_column(tmax, "tmax", self.backend)]
-        n = max(_width(x) for xs in parts.values() for x in xs)
-        if any(_width(x) == 0 for xs in parts.values() for x in xs):
-            n = 0  # an empty input is an empty batch (a width-1 input does not make it one ray)
-        for name, xs in parts.items():
-            for c, x in enumerate(xs):
-                w = _width(x)
-                if w not in (1, n):
-                    comp = f"{name}[{c}]" if name != "tmax" else name
-                    raise ValueError(f"{comp} has {w} entries, the other ray inputs {n}: each input must have "
-                                     f"one entry per ray or a single one for all rays")
-        bcast = (lambda x: _broadcast(m, x, n))
-        oj = [bcast(x) for x in parts["origins"]]
-        dj = [bcast(x) for x in parts["directions"]]
-        tm = bcast(parts["tmax"][0]) if "tmax" in parts else dr.full(m.Float, dr.inf, n)
-        on_device = be.backend_of(origins) is not None or be.backend_of(directions) is not None
-
-        def back(x):
-            return x if on_device else x.numpy()
-        if n == 0:  # Dr.Jit compares a 0-sized array with a literal as a size mismatch
-            return oj, dj, tm, dr.zeros(m.Bool, 0), n, back
-        finite = dr.isfinite(oj[0]) & dr.isfinite(oj[1]) & dr.isfinite(oj[2])
-        finite &= dr.isfinite(dj[0]) & dr.isfinite(dj[1]) & dr.isfinite(dj[2])
-        nonzero = (dj[0] != 0) | (dj[1] != 0) | (dj[2] != 0)
-        valid = finite & nonzero & ~dr.isnan(tm) & (tm > 0)
-        return oj, dj, tm, valid, n, back
-
-    def _auto_mode(self, oj, dj, tm, valid, n, any_hit, hint) -> str:
-        """The faster of per_ray and layer_sorted for this kind of batch, measured once per
-        (closest/any hit, caller's hint such as 'camera', size class = bit length of the ray count).
-
-        Timing both on real rays captures what a rule cannot: scene size against the caches,
-        ray coherence, CPU or GPU. Hits do not depend on the choice (every mode is exact and
-        breaks ties by primitive id), only the time does."""
-        k = min(n, self.batch_rays)  # what one traced batch holds
-        if self.device is None or k < AUTO_MIN_RAYS or self.stats.treelets <= 1:
-            return "per_ray"
-        key = ("any_hit" if any_hit else "closest_hit", hint, k.bit_length())
-        known = self.auto_choices.get(key)
-        if known is not None:
-            return known["mode"]
-
-        def leading(count):  # the first rays: neighbours, as in the batch itself
-            idx = dr.arange(self.m.UInt32, count)
-            take = (lambda x: dr.gather(type(x), x, idx))
-            return [take(c) for c in oj], [take(c) for c in dj], take(tm), take(valid)
-
-        def timed(sample, mode):
-            dr.sync_thread()
-            t0 = time.perf_counter()
-            res, _ = _trace(self.m, self.device, *sample, mode, any_hit, self.tail_rays, count_work=False)
-            dr.eval(res.t, res.tri)
-            dr.sync_thread()
-            return time.perf_counter() - t0
-
-        warm, batch = leading(min(k, AUTO_WARMUP_RAYS)), leading(k)
-        for mode in ("per_ray", "layer_sorted"):  # compiles the kernels; not counted
-            timed(warm, mode)
-        runs = {"per_ray": [], "layer_sorted": []}
-        for rep in range(AUTO_ROUNDS):  # alternate the order so drifts hit both alike
-            for mode in (("per_ray", "layer_sorted") if rep % 2 == 0 else ("layer_sorted", "per_ray")):
-                runs[mode].append(timed(batch, mode))
-        seconds = {mode: float(np.median(t)) for mode, t in runs.items()}
-        choice = "layer_sorted" if seconds["layer_sorted"] < (1 - AUTO_MARGIN) * seconds["per_ray"] else "per_ray"
-        self.auto_choices[key] = {"mode": choice, "seconds": seconds, "sample_rays": k}
-        return choice
-
     def _run(self, origins, directions, tmax, mode, any_hit, stats=True, hint=""):
         if mode not in TRACE_MODES:
             raise ValueError(f"mode must be one of {', '.join(TRACE_MODES)}; got {mode!r}")
-        oj, dj, tm, valid, n, back = self._rays(origins, directions, tmax)
+        oj, dj, tm, valid, n, back = _ray_inputs(self.m, self.backend, origins, directions, tmax)
         m = self.m
         t0 = time.perf_counter()
         chosen = None
         if mode == AUTO:
-            chosen = mode = self._auto_mode(oj, dj, tm, valid, n, any_hit, hint)
+            chosen = mode = auto_mode(self, oj, dj, tm, valid, n, any_hit, hint)
         if self.device is None or n == 0:
             res, st = Results(m, n), TraceStats(mode=mode, rays=n)
         elif n <= self.batch_rays:

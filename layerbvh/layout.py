@@ -73,6 +73,21 @@ class LayerLayout:
                 for name in ("nodes", "leaves", "tris", "treelet_first", "node_treelet", "leaf_treelet")}
 
 
+@dataclass
+class DeviceLayout:
+    """A LayerLayout's arrays on the Dr.Jit device (same byte layout, see layout.LayerLayout)."""
+
+    nodes: object
+    leaves: object
+    tris: object
+    treelet_first: object
+    node_treelet: object
+    leaf_treelet: object
+    depth: int
+    height: int
+    treelet_count: int
+
+
 def _wrap_leaf_root(b: BinaryBVH) -> BinaryBVH:
     """A BVH whose root is a leaf gets an inner root over (that leaf, an empty leaf),
     so every traversal starts at an inner node."""

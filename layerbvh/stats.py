@@ -69,3 +69,23 @@ class TraceStats:
         d.update(inner_nodes_per_ray=self.inner_nodes_per_ray, leaves_per_ray=self.leaves_per_ray,
                  triangles_per_ray=self.triangles_per_ray)
         return d
+
+
+@dataclass
+class BVHStats:
+    triangles: int
+    nodes: int
+    leaves: int
+    treelets: int
+    depth: int
+    treelet_height: int
+    leaf_size: int
+    treelet_node_counts: list
+    bytes: dict
+    build_s: float
+    layout_s: float
+    kernel_load_s: float = 0.0  # first build in a process: compiling/loading the builder's kernels
+
+    @property
+    def total_bytes(self) -> int:
+        return sum(self.bytes.values())

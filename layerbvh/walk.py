@@ -1,90 +1,13 @@
 """The traversal kernel: a nearest-first stack walk over the Layer BVH, whole (per-ray) or one treelet at a time (wavefront step)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import drjit as dr
 
 from .geometry import FAR_SCALE, Ray, hit_children, hit_triangle
-from .layout import EXIT_BIT, LEAF_BIT, PAYLOAD_MASK
+from .layout import EXIT_BIT, LEAF_BIT, PAYLOAD_MASK, DeviceLayout
+from .state import RaySource, RayState
 
 POP = 0xFFFFFFFF  # link value: "take the next entry from the stack"
-NO_HIT = 0xFFFFFFFF
-
-
-@dataclass
-class DeviceLayout:
-    """A LayerLayout's arrays on the Dr.Jit device (same byte layout, see layout.LayerLayout)."""
-
-    nodes: object
-    leaves: object
-    tris: object
-    treelet_first: object
-    node_treelet: object
-    leaf_treelet: object
-    depth: int
-    height: int
-    treelet_count: int
-
-
-class RaySource:
-    """Origins and directions of a ray batch, read by ray slot inside the traversal kernel.
-
-    per_ray reads six slot-ordered arrays (its rays stay in slot order, so that streams). The
-    layer modes keep one 32-byte record per slot, [ox oy oz dx dy dz 0 0]: a sorted step reads
-    a ray's record with one cache line instead of carrying six arrays through every permutation."""
-
-    STRIDE = 8
-
-    def __init__(self, m, o, d, interleaved: bool):
-        self.m, self.interleaved = m, interleaved
-        if interleaved:
-            n = dr.width(o[0])
-            rec = dr.zeros(m.Float, n * self.STRIDE)
-            idx = dr.arange(m.UInt32, n) * self.STRIDE
-            for c, x in enumerate(tuple(o) + tuple(d)):
-                dr.scatter(rec, x, idx + c)
-            dr.eval(rec)
-            self.rec = rec
-        else:
-            self.o, self.d = tuple(o), tuple(d)
-
-    def load(self, slot):
-        m = self.m
-        if self.interleaved:
-            base = slot * self.STRIDE
-            x = [dr.gather(m.Float, self.rec, base + c) for c in range(6)]
-            return x[:3], x[3:]
-        return ([dr.gather(m.Float, a, slot) for a in self.o], [dr.gather(m.Float, a, slot) for a in self.d])
-
-
-@dataclass
-class RayState:
-    """What a ray carries from one wavefront step to the next (one array per field; origins and
-    directions stay in the batch's RaySource, read by slot).
-
-    `link` is where the ray goes on (a node, leaf or exit link, or POP), `sp` the depth of its
-    entry stack in global memory, `slot` its index in the caller's ray batch (and so which
-    entry stack and ray record it owns), `treelet` the treelet it traverses in the coming step.
-    The work counters are None unless statistics were asked for: permuting them every step
-    costs as much as any other field."""
-
-    t: object
-    u: object
-    v: object
-    prim: object
-    tri: object
-    link: object
-    sp: object
-    slot: object
-    treelet: object
-    n_inner: object = None
-    n_leaf: object = None
-    n_tri: object = None
-    n_iter: object = None
-
-    def fields(self) -> dict:
-        return {k: v for k, v in vars(self).items() if v is not None}
 
 
 def treelet_of(m, lay: DeviceLayout, link, active):

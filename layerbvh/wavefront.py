@@ -6,52 +6,15 @@ import time
 import drjit as dr
 
 from .stats import TraceStats
-from .walk import NO_HIT, DeviceLayout, RaySource, RayState, walk
+from .layout import DeviceLayout
+from .state import NO_HIT, RaySource, RayState, Results, _initial_state, _take
+from .walk import walk
 
 MODES = ("per_ray", "layer_sorted", "layer_unsorted")
 ENTRY_BYTES = 8  # one entry-stack slot: link (uint32) + entry distance (float32)
 # When this few rays are left, one per-ray kernel finishes them from their entry stacks: a
 # long tail of nearly empty wavefront steps costs host time per step and buys no locality.
 TAIL_RAYS = 2048
-
-
-def _initial_state(m, n, tmax, count_work: bool) -> RayState:
-    zero = dr.zeros(m.UInt32, n)
-    s = RayState(t=m.Float(tmax), u=dr.zeros(m.Float, n), v=dr.zeros(m.Float, n),
-                 prim=dr.full(m.UInt32, 0xFFFFFFFF, n), tri=dr.full(m.UInt32, NO_HIT, n),
-                 link=zero, sp=zero, slot=dr.arange(m.UInt32, n), treelet=zero)
-    if count_work:
-        s.n_inner, s.n_leaf, s.n_tri, s.n_iter = zero, zero, zero, zero
-    return s
-
-
-def _take(m, s: RayState, idx) -> RayState:
-    """The rays `idx` of `s`, physically copied so the next step reads them sequentially."""
-    return RayState(**{k: dr.gather(type(v), v, idx) for k, v in s.fields().items()})
-
-
-class Results:
-    """Per-ray outputs, written by ray slot as rays finish."""
-
-    def __init__(self, m, n):
-        self.t = dr.full(m.Float, dr.inf, n)
-        self.u = dr.zeros(m.Float, n)
-        self.v = dr.zeros(m.Float, n)
-        self.tri = dr.full(m.UInt32, NO_HIT, n)
-        self.work = [dr.zeros(m.UInt32, n) for _ in range(4)]  # inner, leaf, tri, iterations
-
-    def place(self, other: "Results", idx) -> None:
-        """Copy the results of a sub-batch to the rays `idx`."""
-        for dst, src in zip((self.t, self.u, self.v, self.tri, *self.work),
-                            (other.t, other.u, other.v, other.tri, *other.work)):
-            dr.scatter(dst, src, idx)
-
-    def write(self, s: RayState, mask):
-        for dst, src in ((self.t, s.t), (self.u, s.u), (self.v, s.v), (self.tri, s.tri)):
-            dr.scatter(dst, src, s.slot, mask)
-        if s.n_iter is not None:
-            for dst, src in zip(self.work, (s.n_inner, s.n_leaf, s.n_tri, s.n_iter)):
-                dr.scatter(dst, src, s.slot, mask)
 
 
 def _sync():

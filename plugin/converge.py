@@ -133,7 +133,7 @@ def default_cache_dir() -> Path:
 
 def reference(mi, scene, scene_path: Path, settings: dict, cache: Path, progress: bool) -> tuple[np.ndarray, dict]:
     """The stock reference image: read from the cache when its key matches, else rendered and stored."""
-    from .cli import render_passes
+    from .render import render_passes
     key = reference_key(scene_path, settings)
     exr, meta = cache / f"{key[:24]}.exr", cache / f"{key[:24]}.json"
     if exr.is_file() and meta.is_file():
@@ -175,7 +175,7 @@ def _render(mi, scene, integ, spp: int, seed: int) -> tuple[np.ndarray, float, f
     backend compile time, so it is taken out of the render time and reported on its own."""
     import drjit as dr
 
-    from .cli import render_passes
+    from .render import render_passes
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     dr.kernel_history()  # drop what came before
     try:
@@ -358,7 +358,7 @@ def run(mi, args) -> dict:
     """`layerbvh converge`: returns the JSON document it writes."""
     from tqdm import tqdm
 
-    from .cli import load_scene, path_props
+    from .render import load_scene, path_props
     configs = parse_configs(args.configs)
     if args.budget <= 0:
         raise ConvergeError(f"--budget must be > 0 seconds, got {args.budget}")

@@ -31,14 +31,14 @@ def _mi():
 
 def load(scene_path, res=None, **params):
     """Load an XML scene with optional $parameters and a film resolution override."""
-    from .cli import load_scene
+    from .render import load_scene
     return load_scene(_mi(), scene_path, res, **params)
 
 
 def render_pair(scene, spp: int, seed: int = 0, traversal: str = "per_ray", ours_scene=None, **ours_props):
     """Stock `path` (with the scene's own settings) and `layerbvh` images of one scene, same seed."""
     mi = _mi()
-    from .cli import path_props
+    from .render import path_props
     props = path_props(mi, scene)
     stock = mi.load_dict({"type": "path", **props})
     ours = mi.load_dict({"type": "layerbvh", "traversal": traversal, **props, **ours_props})
@@ -90,7 +90,7 @@ def zscore_vs_stock(scene_path, spp=64, res=(8, 8), repeats=8, traversal="per_ra
     """Independent seeds: per-pixel Z-test (Šidák-corrected) of layerbvh against stock `path`.
     `modify(params)` may change the scene for the layerbvh render (a negative control)."""
     mi = _mi()
-    from .cli import path_props
+    from .render import path_props
     from .metrics import zscore_test
     scene = load(scene_path, res, **params)
     props = path_props(mi, scene)

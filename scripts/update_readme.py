@@ -6,10 +6,8 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
 
-from layerbvh_mitsuba import atomic  # noqa: E402
+from layerbvh_mitsuba import atomic
 
 
 def readme_body(text: str) -> str:

@@ -1,22 +1,16 @@
 """Shared fixtures: meshes the engine is tested on and Embree (stock Mitsuba) as ground truth."""
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
+import mitsuba as mi
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-import mitsuba as mi  # noqa: E402
-
 mi.set_variant("llvm_ad_rgb")
 
-from scripts import meshes  # noqa: E402
+from layerbvh_mitsuba.bench import meshes  # noqa: E402
+from layerbvh_mitsuba.repo import SCENES  # noqa: E402
 
-BUNNY = ROOT / "scenes" / "meshes" / "bunny.ply"
+BUNNY = SCENES / "meshes" / "bunny.ply"
 
 
 @pytest.fixture(scope="session")

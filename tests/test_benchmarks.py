@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from layerbvh_mitsuba import embree, record
-from scripts import bench_scaling, bench_traversal, record_rays, report
+from layerbvh_mitsuba.bench import record_rays, report, scaling as bench_scaling, traversal as bench_traversal
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
 RES, SPP = (16, 12), 2

@@ -99,7 +99,7 @@ def test_bad_configs_are_named(capsys):
 
 
 def test_report_quotes_the_convergence_table(converged):
-    from scripts import report
+    from layerbvh_mitsuba.bench import report
     out, _, _ = converged
     text = "\n".join(report.converge_section([out], out.parent))
     assert "layerbvh converge" in text and "--configs stock,per_ray,layer_sorted:2" in text

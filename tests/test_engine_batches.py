@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import layerbvh
-from scripts import meshes
+from layerbvh_mitsuba.bench import meshes
 
 
 @pytest.mark.parametrize("mode", layerbvh.MODES)

@@ -6,7 +6,7 @@ import pytest
 
 import layerbvh
 from layerbvh_mitsuba import embree
-from scripts import meshes
+from layerbvh_mitsuba.bench import meshes
 
 N_RAYS = 40_000
 

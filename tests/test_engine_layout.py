@@ -7,7 +7,7 @@ import pytest
 import layerbvh
 from layerbvh.layout import EXIT_BIT, LEAF_BIT, NODE_FLOATS, check_layout
 from layerbvh.sah import MAX_DEPTH, triangle_bounds
-from scripts import meshes
+from layerbvh_mitsuba.bench import meshes
 
 
 def _soup(n, seed=0, size=0.05):

@@ -10,8 +10,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from scripts import gen_stress
-from scripts.meshes import load_mesh
+from layerbvh_mitsuba.bench import stress as gen_stress
+from layerbvh_mitsuba.bench.meshes import load_mesh
 
 mi.set_variant("llvm_ad_rgb")
 

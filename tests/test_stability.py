@@ -1,11 +1,11 @@
-"""The stability suite (scripts/stability_cases.py): every case passes its stated rule, and the checks catch what they are meant to catch."""
+"""The stability suite (layerbvh_mitsuba.stability): every case passes its stated rule, and the checks catch what they are meant to catch."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 import layerbvh
-from scripts import stability_cases as sc
+from layerbvh_mitsuba import stability as sc
 
 
 @pytest.mark.parametrize("name", list(sc.CASES))

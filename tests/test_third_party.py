@@ -8,7 +8,7 @@ from pathlib import Path
 
 import mitsuba as mi
 
-from layerbvh_mitsuba.cli import path_props
+from layerbvh_mitsuba.render import path_props
 
 ROOT = Path(__file__).resolve().parents[1]
 

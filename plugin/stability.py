@@ -26,8 +26,7 @@ from typing import Callable
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-SCENES = ROOT / "scenes"
+from .repo import SCENES
 STIFF = SCENES / "stability"
 MISS = 0xFFFFFFFF
 RAYS = 40_000          # rays per ray-level case at scale 1
@@ -88,13 +87,13 @@ def _rng(name: str) -> np.random.Generator:
 def scene_triangles(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """World-space triangles of a project XML scene (every mesh, as the integrator sees them)."""
     mi = _mi()
-    from layerbvh_mitsuba.adapter import collect_geometry
+    from .adapter import collect_geometry
     g = collect_geometry(mi.load_file(str(path), resx=8, resy=8))
     return g.vertices.astype(np.float64), g.faces
 
 
 def bunny() -> tuple[np.ndarray, np.ndarray]:
-    from scripts import meshes
+    from .bench import meshes
     v, f = meshes.load_mesh(SCENES / "meshes" / "bunny.ply")
     return v.astype(np.float64), f
 
@@ -120,7 +119,7 @@ def nonfinite_hits(h) -> int:
 def embree_hits(v, f, o, d, tmax=None, with_t: bool = False) -> dict:
     """Embree's closest-hit prims (or (t, prim) with `with_t`), default and robust mode."""
     _mi()
-    from layerbvh_mitsuba import embree
+    from . import embree
     v32 = np.asarray(v, np.float32)
     out = {robust: embree.intersect(embree.scene_from_mesh(v32, f, robust), o, d, tmax) for robust in (False, True)}
     return out if with_t else {r: tp[1] for r, tp in out.items()}
@@ -133,7 +132,7 @@ def against_embree(name: str, v, f, o, d, tmax=None, extra: dict | None = None, 
     Pass: the modes agree bit for bit, no NaN/Inf hit, and we are wrong on at most
     max(REAL_RATE x rays, the number robust Embree is wrong on) rays. `extra` adds
     {label: (value, must_be_zero)} figures."""
-    from layerbvh_mitsuba import embree
+    from . import embree
     v32 = np.asarray(v, np.float32)
     o, d = np.asarray(o, np.float32), np.asarray(d, np.float32)
     _, h, mode_diff = trace_modes(v32, f, o, d, tmax, **build)
@@ -172,7 +171,7 @@ def box_bunny() -> tuple[np.ndarray, np.ndarray]:
 
 
 def random_rays(v, n: int, rng) -> tuple[np.ndarray, np.ndarray]:
-    from scripts import meshes
+    from .bench import meshes
     return meshes.incoherent_rays(v, n, seed=int(rng.integers(2**31)))
 
 
@@ -387,7 +386,7 @@ def axis_aligned_rays(scale):
     rng = _rng("axis")
     v, f = box_bunny()
     n = _n(scale)
-    from scripts import meshes
+    from .bench import meshes
     o, _ = meshes.incoherent_rays(v, n, seed=5)
     o = o.astype(np.float64)
     # Snap one or two coordinates of half the origins onto vertex coordinates.
@@ -448,7 +447,7 @@ def grazing_rays(scale):
 
 def closed_meshes():
     """Closed test meshes: a UV sphere (pole fans) and a tessellated cube, float64."""
-    from scripts import meshes
+    from .bench import meshes
     sv, sf = meshes.uv_sphere(48, 25)
     k = 6
     g = np.linspace(-1, 1, k + 1)
@@ -562,8 +561,8 @@ def leaks(prim, t, dist, size: float) -> int:
 @case("spawn_ray_self_hits", "rays", "rays leaving the default scene's surfaces (Mitsuba's spawn_ray, both hemispheres), also with the scene moved to 1e5: none may hit its own triangle")
 def spawn_ray_self_hits(scale):
     mi = _mi()
-    from layerbvh_mitsuba import embree
-    from layerbvh_mitsuba.adapter import SceneTracer
+    from . import embree
+    from .adapter import SceneTracer
     rng = _rng("spawn")
     n = _n(scale)
     v0, f = box_bunny()
@@ -637,7 +636,7 @@ def tiny_meshes(scale):
 def bad_data(scale):
     mi = _mi()
     import layerbvh
-    from layerbvh_mitsuba.adapter import SceneTracer
+    from .adapter import SceneTracer
     notes, ok = [], True
     for bad in (np.nan, np.inf):
         scene = mi.load_string(f"""<scene version="3.0.0">
@@ -691,8 +690,8 @@ def image_case(name: str, scene: str, scale: float, spp: int = 16, z_spp: int = 
     """Stock `path` (Embree default and robust) against `layerbvh` on scenes/stability/SCENE.xml:
     same-seed pixel disagreements, the Z-test over independent seeds, and NaN/Inf pixels."""
     mi = _mi()
-    from layerbvh_mitsuba import testing
-    from layerbvh_mitsuba.cli import path_props
+    from . import testing
+    from .render import path_props
     res = max(8, int(round(16 * math.sqrt(scale))))
     path = STIFF / f"{scene}.xml"
     imgs, nonfinite = {}, 0

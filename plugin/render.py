@@ -1,0 +1,83 @@
+"""Loading a scene, reading its path settings, rendering in passes: what the CLI, converge, the tests and the tools share."""
+from __future__ import annotations
+
+import math
+import sys
+import time
+
+import numpy as np
+
+SPP_PER_PASS = 64  # a progress bar step; one pass (the exact seed) whenever spp <= this
+
+
+class CliError(Exception):
+    """An error reported to the user as one line."""
+
+
+def load_scene(mi, path: str, res=None, **params):
+    """Load an XML scene (with optional $parameters); `res` overrides the film of its first
+    sensor, whether or not the scene declares resolution parameters."""
+    try:
+        scene = mi.load_file(str(path), **params)
+    except Exception as e:  # Mitsuba raises RuntimeError with a multi-line message
+        raise CliError(f"cannot load scene {path}: {str(e).strip().splitlines()[-1]}") from None
+    if not scene.sensors():
+        raise CliError(f"scene {path} has no sensor")
+    if res is not None:
+        params = mi.traverse(scene.sensors()[0])
+        params["film.size"] = list(res)
+        params["film.crop_size"] = list(res)
+        params["film.crop_offset"] = [0, 0]
+        params.update()
+    return scene
+
+
+def signed_depth(value: int) -> int:
+    """Mitsuba keeps max_depth as uint32, so -1 (infinite) reads back as 2^32 - 1: map it back."""
+    return value - 2 ** 32 if value >= 2 ** 31 else value
+
+
+def path_props(mi, scene) -> dict:
+    """The scene's own integrator settings when it is a `path` (else path's defaults)."""
+    integ = scene.integrator()
+    out = {}
+    if integ is not None and integ.class_name() == "PathIntegrator":
+        for key in ("max_depth", "rr_depth", "hide_emitters"):
+            try:
+                out[key] = mi.traverse(integ)[key]
+            except Exception:
+                pass
+        # Not traversable in every version: read from the string form as a fallback.
+        text = str(integ)
+        for key in ("max_depth", "rr_depth"):
+            if key not in out:
+                for line in text.splitlines():
+                    if line.strip().startswith(key):
+                        out[key] = int(line.split("=")[1].strip().rstrip(","))
+        for key in ("max_depth", "rr_depth"):
+            if key in out:
+                out[key] = signed_depth(int(out[key]))
+    return out
+
+
+def render_passes(mi, scene, integrator, spp: int, seed: int, label: str, progress: bool):
+    """Render in passes of SPP_PER_PASS with a progress bar; a single pass uses `seed` itself."""
+    import drjit as dr
+    from tqdm import tqdm
+    passes = max(1, math.ceil(spp / SPP_PER_PASS))
+    acc, done = None, 0
+    t0 = time.perf_counter()
+    with tqdm(total=spp, desc=label, unit="spp", disable=not progress, leave=False, file=sys.stderr) as bar:
+        for k in range(passes):
+            n = min(SPP_PER_PASS, spp - done) if passes > 1 else spp
+            img = mi.render(scene, integrator=integrator, spp=n, seed=seed if passes == 1 else seed * 7919 + k)
+            dr.eval(img)
+            part = np.array(img, np.float32) * n
+            acc = part if acc is None else acc + part
+            done += n
+            bar.update(n)
+    return acc / spp, time.perf_counter() - t0
+
+
+def scene_spp(scene) -> int:
+    return scene.sensors()[0].sampler().sample_count()

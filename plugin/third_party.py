@@ -1,0 +1,415 @@
+"""A/B check on third-party scenes: stock `path` vs the `layerbvh` integrator, same seed, one subprocess per scene.
+
+For every scene found under --root (default ../shared/assets relative to the repository root) it
+loads the scene with the project's loader (`cli.load_scene`, film resized to --res), renders stock
+`path` and `layerbvh` with the scene's own sensor, the same spp and seed (`cli.render_passes`), and
+compares them (`metrics.compare_images`, plus the same-seed criterion of
+`testing.assert_matches_stock`). Scenes whose integrator is not a plain `path` (Mitsuba's test
+scenes wrap it in `moment`/`aov`, or use `direct`) are compared with `path` using the inner
+integrator's settings when they can be read, else path's defaults, and the table says so.
+
+    .venv/bin/python scripts/third_party.py [--root DIR] [--res W H] [--spp N] [--seed S]
+        [--traversal per_ray|layer_sorted|layer_unsorted] [--check-rays N] [--timeout SECONDS]
+        [--scenes GLOB ...] [--md OUT.md] [--json OUT.json] [--readme]
+
+Result column: `works` (>= 99.9% of pixels within 1e-3 abs in every channel and mean |diff| <=
+1e-4 x mean pixel value), `works (specular tolerance)` (>= 99% within 1e-3), `differs` (with the
+numbers), `refused: ...` (our backend refuses a plugin), `fails in stock Mitsuba: ...`, or
+`error in layerbvh: ...` / `timeout` / `crashed` when something else goes wrong. Where the
+same-seed result is not `works`, the per-pixel Z-test of `testing.assert_statistically_matches_stock`
+(64 spp, 16x12, 8 seeds each) is run and its pass rate added.
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import re
+import shlex
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+from . import atomic
+from .repo import ROOT
+
+# The scenes of the task (PROVENANCE.md of shared/assets), as globs relative to --root.
+DEFAULT_SCENES = (
+    "bitterli/cornell-box/scene.xml",
+    "bitterli/veach-mis/scene.xml",
+    "bitterli/staircase2/scene.xml",
+    "mitsuba/matpreview/matpreview.xml",
+    "mitsuba/cbox/cbox.xml",
+    "mitsuba/cbox/cbox-rgb.xml",
+    "mitsuba/cbox/cbox-spectral.xml",
+    "mitsuba/tests/bsdf_spheres/*.xml",
+    "mitsuba/tests/infinite_mirrors/scene_path.xml",
+    "mitsuba/tests/instancing/test_instancing_path.xml",
+    "mitsuba/tests/floating_sphere/*.xml",
+    "mitsuba/tests/orthographic_sensor/*.xml",
+)
+
+TOL = 1e-3            # per-pixel absolute tolerance (every channel)
+MIN_FRAC = 0.999      # testing.assert_matches_stock's default
+MAX_MEAN_REL = 1e-4   # testing.assert_matches_stock's default
+SPECULAR_FRAC = 0.99  # "works (specular tolerance)"
+
+
+# ------------------------------------------------------------------------------------------------
+# Worker: one scene, in its own process. Writes a JSON record to --worker-out.
+# ------------------------------------------------------------------------------------------------
+
+def _xml_text(path: Path, seen=None) -> str:
+    """The scene file's text plus that of the files it <include>s (for notes only)."""
+    seen = set() if seen is None else seen
+    path = path.resolve()
+    if path in seen or not path.is_file():
+        return ""
+    seen.add(path)
+    text = path.read_text(errors="replace")
+    for inc in re.findall(r'<include\s+filename\s*=\s*["\']([^"\']+)["\']', text):
+        text += "\n" + _xml_text(path.parent / inc, seen)
+    return text
+
+
+def _inner_path_settings(mi, scene) -> tuple[dict, str]:
+    """Integrator settings to give stock `path` and ours, and a note when the scene's integrator is
+    not a plain `path`. Plain `path`: `cli.path_props`. A wrapper (moment/aov) around `path`: the
+    inner integrator's max_depth/rr_depth read from its string form. Anything else: path defaults."""
+    from layerbvh_mitsuba.render import path_props, signed_depth
+    integ = scene.integrator()
+    if integ is None:
+        return {}, "scene has no integrator; used path defaults"
+    cls = integ.class_name()
+    if cls == "PathIntegrator":
+        return path_props(mi, scene), ""
+    text = str(integ)
+    m = re.search(r"PathIntegrator\[(.*?)\]", text, re.S)
+    if m:
+        props = {}
+        for key in ("max_depth", "rr_depth"):
+            k = re.search(rf"\b{key}\s*=\s*(-?\d+)", m.group(1))
+            if k:
+                props[key] = signed_depth(int(k.group(1)))
+        shown = ", ".join(f"{k}={v}" for k, v in props.items()) or "path defaults"
+        return props, f"scene integrator {cls.replace('Integrator', '').lower()}(path); compared path with inner {shown}"
+    inner = re.findall(r"(\w+)Integrator\[", text)
+    inner = [n.lower() for n in inner if n + "Integrator" != cls]
+    what = f"{cls.replace('Integrator', '').lower()}" + (f"({', '.join(inner)})" if inner else "")
+    return {}, f"scene integrator {what} is not path; compared path with defaults (max_depth=-1, rr_depth=5)"
+
+
+def _shape_counts(scene) -> tuple[int, str]:
+    tris, other = 0, {}
+    for s in scene.shapes():
+        if s.is_mesh():
+            tris += int(s.face_count())
+        else:
+            name = s.class_name().lower()
+            other[name] = other.get(name, 0) + 1
+    return tris, ", ".join(f"{n} {k}" for k, n in sorted(other.items())) or "-"
+
+
+def _finite(img, np):
+    bad = int((~np.isfinite(img)).any(-1).sum())
+    return (np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0) if bad else img), bad
+
+
+def _one_line(e: BaseException) -> str:
+    """The last line of the innermost exception (Dr.Jit wraps the real error as "see above")."""
+    chain = [e]
+    while (c := chain[-1].__cause__ or chain[-1].__context__) is not None and c not in chain:
+        chain.append(c)
+    inner = chain[-1]
+    lines = [ln.strip() for ln in str(inner).strip().splitlines() if ln.strip()]
+    msg = lines[-1] if lines else ""
+    if inner is not e and not isinstance(inner, ValueError):
+        msg = f"{type(inner).__name__}: {msg}"
+    return (msg or type(inner).__name__)[:300]
+
+
+def ray_check(tracer, n: int, seed: int) -> dict | None:
+    """Closest hits of `n` random rays through the scene's triangles, ours against Embree: how
+    many rays get another triangle, and how many of those are ties (`embree.disagreements`):
+    shared edges and (near-)coplanar overlapping triangles, where either answer is right (we take
+    the one whose float t is smaller, then the lower primitive id)."""
+    from . import embree
+    from .bench import meshes
+    g = tracer.geometry
+    if n <= 0 or g.triangle_count == 0:
+        return None
+    o, d = meshes.incoherent_rays(g.vertices, n, seed)
+    _, p_e = embree.intersect(embree.scene_from_mesh(g.vertices, g.faces), o, d)
+    h = tracer.bvh.trace(o, d, mode="per_ray", stats=False)
+    dis = embree.disagreements(g.vertices, g.faces, o, d, h.prim, p_e)
+    tie = dis["tie_idx"]
+    return {"rays": n, "other_prim": dis["ties"] + dis["other"] + dis["hit_miss"], "ties": dis["ties"],
+            "tie_other_shape": int((g.tri_shape[p_e[tie]] != g.tri_shape[h.prim[tie]]).sum())}
+
+
+def run_worker(args) -> dict:
+    rec = {"notes": []}
+    scene_path = Path(args.worker)
+    text = _xml_text(scene_path)
+    import numpy as np
+    import mitsuba as mi
+    mi.set_variant(args.variant)
+    import layerbvh_mitsuba  # noqa: F401  (registers the integrator)
+    from layerbvh_mitsuba.adapter import UnsupportedShapeError
+    from layerbvh_mitsuba.render import CliError, load_scene, render_passes
+    from layerbvh_mitsuba.metrics import compare_images
+
+    if "spectral" not in args.variant and (re.search(r'<spectrum[^>]*value\s*=\s*"[^"]*\d\s*:', text)
+                                           or "spectral" in scene_path.name):
+        rec["notes"].append(f"spectral data rendered in RGB mode ({args.variant})")
+
+    # Stock Mitsuba first: loading or rendering failing there is not ours to judge.
+    try:
+        t0 = time.perf_counter()
+        scene = load_scene(mi, str(scene_path), tuple(args.res))
+        rec["load_s"] = time.perf_counter() - t0
+    except CliError as e:
+        rec["result"] = f"fails in stock Mitsuba: {str(e).split(': ', 1)[-1] if ': ' in str(e) else e}"
+        return rec
+    except Exception as e:
+        rec["result"] = f"fails in stock Mitsuba: {_one_line(e)}"
+        return rec
+    rec["triangles"], rec["other_shapes"] = _shape_counts(scene)
+    props, note = _inner_path_settings(mi, scene)
+    if "hide_emitters" in text and "hide_emitters" not in props:
+        m = re.search(r'name\s*=\s*"hide_emitters"\s+value\s*=\s*"(\w+)"', text)
+        if m:
+            props["hide_emitters"] = m.group(1).lower() == "true"
+            note = (note + "; " if note else "") + f"hide_emitters={m.group(1)} read from the XML"
+    if note:
+        rec["notes"].append(note)
+    rec["integrator"] = props
+    sensor = scene.sensors()[0]
+    rec["sensor"] = sensor.class_name()
+    rec["resolution"] = [int(x) for x in sensor.film().crop_size()]
+
+    try:
+        stock = mi.load_dict({"type": "path", **props})
+    except Exception as e:
+        rec["result"] = f"error: path with the scene's settings {props}: {_one_line(e)}"
+        return rec
+    try:
+        stock_img, rec["stock_s"] = render_passes(mi, scene, stock, args.spp, args.seed, "stock", False)
+    except Exception as e:
+        rec["result"] = f"fails in stock Mitsuba: {_one_line(e)}"
+        return rec
+
+    try:
+        ours = mi.load_dict({"type": "layerbvh", "traversal": args.traversal, **props})
+        ours.tracer(scene)  # builds the BVH; refuses unsupported shapes by name
+    except UnsupportedShapeError as e:
+        rec["result"] = f"refused: {_one_line(e)}"
+        return rec
+    except Exception as e:
+        rec["result"] = f"error in layerbvh (setup/BVH build): {_one_line(e)}"
+        return rec
+    try:
+        ours_img, rec["ours_s"] = render_passes(mi, scene, ours, args.spp, args.seed, "layerbvh", False)
+    except UnsupportedShapeError as e:
+        rec["result"] = f"refused: {_one_line(e)}"
+        return rec
+    except Exception as e:
+        rec["result"] = f"error in layerbvh (render): {_one_line(e)}"
+        return rec
+    rec["ray_check"] = ray_check(ours.tracer(scene), args.check_rays, args.seed)
+    rec["ours_build_s"] = float(ours.last_stats.get("build_s", 0.0))
+    rec["ours_trace_s"] = float(ours.last_stats.get("trace_s", 0.0))
+
+    if stock_img.shape != ours_img.shape:
+        rec["result"] = f"differs: image shapes {list(stock_img.shape)} (stock) vs {list(ours_img.shape)} (ours)"
+        return rec
+    stock_img, bad_a = _finite(stock_img, np)
+    ours_img, bad_b = _finite(ours_img, np)
+    if bad_a or bad_b:
+        rec["notes"].append(f"NaN/Inf pixels set to 0: stock {bad_a}, ours {bad_b}")
+    # Same criterion as testing.same_seed / assert_matches_stock (every channel of the film).
+    d = np.abs(stock_img.astype(np.float64) - ours_img)
+    frac = float(np.mean(d.max(-1) <= TOL))
+    mean_abs, mean_ref = float(d.mean()), float(stock_img.astype(np.float64).mean())
+    rec["same_seed"] = {"frac_within_1e-3": frac, "mean_abs": mean_abs, "mean_ref": mean_ref,
+                        "max_abs": float(d.max()), "channels": int(stock_img.shape[-1])}
+    rec["metrics"] = compare_images(stock_img, ours_img)
+    if frac >= MIN_FRAC and mean_abs <= MAX_MEAN_REL * mean_ref:
+        rec["result"] = "works"
+    elif frac >= SPECULAR_FRAC:
+        rec["result"] = "works (specular tolerance)"
+    else:
+        rec["result"] = (f"differs: {100 * frac:.2f}% within 1e-3, mean |diff| {mean_abs:.3g} "
+                         f"(mean pixel {mean_ref:.3g}), max |diff| {float(d.max()):.3g}")
+    if rec["result"] != "works":
+        # Same-seed paths diverge after one different hit (e.g. a tie, see ray_check); whether
+        # the two estimators still agree is a question for the statistical test.
+        from layerbvh_mitsuba.testing import zscore_vs_stock
+        z = zscore_vs_stock(str(scene_path), spp=64, res=(16, 12), repeats=8, traversal=args.traversal)
+        rec["z_test"] = {k: float(z[k]) for k in ("pass_fraction", "min_p", "threshold")}
+        rec["result"] += f"; Z-test over independent seeds: {100 * z['pass_fraction']:.1f}% of pixels pass"
+    return rec
+
+
+# ------------------------------------------------------------------------------------------------
+# Driver
+# ------------------------------------------------------------------------------------------------
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--root", default=str(ROOT.parent / "shared" / "assets"),
+                   help="folder holding the third-party scenes (default: ../shared/assets from the repo root)")
+    p.add_argument("--scenes", nargs="+", default=list(DEFAULT_SCENES), metavar="GLOB",
+                   help="scene files or globs relative to --root (default: the task's list)")
+    p.add_argument("--res", type=int, nargs=2, default=[64, 48], metavar=("W", "H"))
+    p.add_argument("--spp", type=int, default=8)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--traversal", default="layer_sorted",
+                   help="per_ray | layer_sorted | layer_unsorted (default: the integrator's, layer_sorted)")
+    p.add_argument("--check-rays", type=int, default=200_000,
+                   help="random rays traced by ours and Embree over each scene's triangles (0: skip)")
+    p.add_argument("--variant", default="llvm_ad_rgb")
+    p.add_argument("--timeout", type=float, default=300.0, help="seconds per scene (default 300)")
+    p.add_argument("--md", help="also write the markdown table here (atomically)")
+    p.add_argument("--json", help="write the raw figures here as JSON (atomically)")
+    p.add_argument("--readme", action="store_true", help="also splice the table into README.md (section third_party)")
+    p.add_argument("--worker", help=argparse.SUPPRESS)
+    p.add_argument("--worker-out", help=argparse.SUPPRESS)
+    return p
+
+
+def _find_scenes(root: Path, patterns) -> tuple[list[Path], list[str]]:
+    found, missing = [], []
+    for pat in patterns:
+        hits = sorted(Path(h) for h in glob.glob(str(root / pat)) if Path(h).is_file())
+        if not hits:
+            missing.append(pat)
+        for h in hits:
+            if h not in found:
+                found.append(h)
+    return found, missing
+
+
+def _run_scene(args, scene: Path) -> dict:
+    fd, out = tempfile.mkstemp(suffix=".json", prefix="third_party-")
+    os.close(fd)
+    cmd = [sys.executable, "-m", "layerbvh_mitsuba.third_party", "--worker", str(scene), "--worker-out", out,
+           "--res", *map(str, args.res), "--spp", str(args.spp), "--seed", str(args.seed),
+           "--traversal", args.traversal, "--variant", args.variant, "--check-rays", str(args.check_rays)]
+    t0 = time.perf_counter()
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, cwd=ROOT)
+        wall = time.perf_counter() - t0
+        text = Path(out).read_text() if Path(out).stat().st_size else ""
+        if proc.returncode == 0 and text:
+            rec = json.loads(text)
+        else:
+            tail = [ln for ln in (proc.stderr or proc.stdout or "").strip().splitlines() if ln.strip()]
+            rec = {"result": f"crashed (exit {proc.returncode}): {tail[-1].strip()[:300] if tail else 'no output'}",
+                   "notes": []}
+    except subprocess.TimeoutExpired:
+        wall = time.perf_counter() - t0
+        rec = {"result": f"timeout after {args.timeout:g} s", "notes": []}
+    finally:
+        Path(out).unlink(missing_ok=True)
+    rec["wall_s"] = wall
+    return rec
+
+
+def _shown(path: str) -> str:
+    """A path relative to the repository when it lies near it (README tables stay machine-independent)."""
+    return os.path.relpath(path, ROOT) if Path(path).is_relative_to(ROOT.parent) else path
+
+
+def _fmt(x, spec):
+    return "-" if x is None else format(x, spec)
+
+
+def _markdown(cmdline: str, args, rows, missing, total_s) -> str:
+    lines = [f"`{cmdline}`", "",
+             f"Stock `path` vs `layerbvh` (traversal `{args.traversal}`), same seed {args.seed}, "
+             f"{args.spp} spp, {args.res[0]}x{args.res[1]}, variant `{args.variant}`, root `{_shown(args.root)}`. "
+             f"within 1e-3 = share of pixels whose every channel differs by <= 1e-3; FLIP/rel_mse from "
+             f"`metrics.compare_images`; rays: of --check-rays random rays through the scene's triangles, how many "
+             f"get another triangle from ours than from Embree, and in brackets how many of those are ties: both "
+             f"triangles at the same distance (float64) up to float32 resolution of the coordinates (shared edges, coplanar "
+             f"overlapping triangles), where either answer is right; seconds are `cli.render_passes` wall time and include LLVM JIT compilation (Dr.Jit caches kernels "
+             f"on disk, so a first run on a cold cache is far slower).", "",
+             "| scene | triangles | other shapes | result | within 1e-3 | mean abs | max abs | FLIP mean "
+             "| rel_mse | rays: other prim (ties) | stock s | ours s | notes |",
+             "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+    for r in rows:
+        ss, m = r.get("same_seed") or {}, r.get("metrics") or {}
+        frac = ss.get("frac_within_1e-3")
+        notes = "; ".join(r.get("notes") or []) or ""
+        rc = r.get("ray_check")
+        rays = "-" if not rc else f"{rc['other_prim']} ({rc['ties']}) of {rc['rays'] // 1000}k"
+        result = r["result"]
+        if result.startswith("refused") and " is not supported" in result:
+            result = result[:result.index(" is not supported")] + " is not supported"
+        cells = [f"`{r['scene']}`", _fmt(r.get("triangles"), ","), r.get("other_shapes", "-"),
+                 result.replace("|", "\\|"),
+                 "-" if frac is None else f"{100 * frac:.2f}%",
+                 _fmt(ss.get("mean_abs"), ".2e"), _fmt(ss.get("max_abs"), ".2e"),
+                 _fmt(m.get("flip_mean"), ".2e"), _fmt(m.get("rel_mse"), ".2e"), rays,
+                 _fmt(r.get("stock_s"), ".2f"), _fmt(r.get("ours_s"), ".2f"), notes.replace("|", "\\|")]
+        lines.append("| " + " | ".join(cells) + " |")
+    for pat in missing:
+        lines.append(f"\nNot found under root (skipped): `{pat}`")
+    lines.append(f"\nTotal: {len(rows)} scenes in {total_s:.1f} s.")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    if args.worker:
+        try:
+            rec = run_worker(args)
+        except Exception as e:  # anything unexpected still becomes one line in the table
+            rec = {"result": f"crashed: {type(e).__name__}: {_one_line(e)}", "notes": []}
+        Path(args.worker_out).write_text(json.dumps(rec))
+        return 0
+
+    cmdline = shlex.join(getattr(sys, "orig_argv", [sys.executable, *sys.argv]))
+    args.root = str(Path(args.root).resolve())
+    import layerbvh
+    if args.traversal not in layerbvh.MODES:
+        print(f"third_party: --traversal must be one of {', '.join(layerbvh.MODES)}", file=sys.stderr)
+        return 2
+    root = Path(args.root)
+    if not root.is_dir():
+        print(f"third_party: root folder not found: {root}", file=sys.stderr)
+        return 2
+    scenes, missing = _find_scenes(root, args.scenes)
+    for pat in missing:
+        print(f"note: {pat} not found under {root}; skipped", file=sys.stderr)
+    rows = []
+    t0 = time.perf_counter()
+    for scene in scenes:
+        rel = scene.relative_to(root).as_posix()
+        print(f"[{len(rows) + 1}/{len(scenes)}] {rel} ...", file=sys.stderr, flush=True)
+        rec = {"scene": rel, **_run_scene(args, scene)}
+        print(f"    {rec['result']} ({rec['wall_s']:.1f} s)", file=sys.stderr, flush=True)
+        rows.append(rec)
+    total = time.perf_counter() - t0
+    md = _markdown(cmdline, args, rows, missing, total)
+    sys.stdout.write(md)
+    if args.md:
+        atomic.write_text(args.md, md)
+    if args.readme:
+        from update_readme import readme_body
+        atomic.splice_section(ROOT / "README.md", "third_party", readme_body(md))
+    if args.json:
+        raw = {"command": cmdline, "root": args.root, "res": args.res, "spp": args.spp, "seed": args.seed,
+               "traversal": args.traversal, "variant": args.variant, "timeout_s": args.timeout,
+               "total_s": total, "missing": missing, "scenes": rows}
+        atomic.write_text(args.json, json.dumps(raw, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
