@@ -1,8 +1,12 @@
 """layerbvh: Layer BVH build, layout and exact sorted wavefront traversal on Dr.Jit."""
-from .bvh import AUTO, MISS, TRACE_MODES, BVHStats, Hits, LayerBVH, build
+from .auto import AUTO
+from .inputs import PARAM_RANGES, check_mesh, check_param
+from .bvh import BATCH_RAYS, TRACE_MODES, Hits, LayerBVH, Occlusion, build
 from .layout import LayerLayout, check_layout
-from .stats import TraceStats
+from .state import MISS
+from .stats import BVHStats, TraceStats
 from .wavefront import MODES
 
-__all__ = ["AUTO", "TRACE_MODES", "build", "LayerBVH", "Hits", "BVHStats", "TraceStats", "LayerLayout", "check_layout", "MODES", "MISS"]
+__all__ = ["AUTO", "BATCH_RAYS", "TRACE_MODES", "build", "LayerBVH", "Hits", "Occlusion", "BVHStats", "TraceStats",
+           "LayerLayout", "check_layout", "MODES", "MISS", "PARAM_RANGES", "check_mesh", "check_param"]
 __version__ = "0.1.0"

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import drjit as dr
 
-from .layout import NODE_FLOATS, TRI_FLOATS
+from .layout import NODE_BOX_HI, NODE_BOX_LO, NODE_FLOATS, NODE_LINK, TRI_FACE, TRI_FLOATS, TRI_NORMAL, TRI_VERTEX
 
 # Ize 2013: scaling a box's far distance by 1 + 2*gamma(3) makes the float slab test conservative.
 _GAMMA3 = 3 * 2.0 ** -24 / (1 - 3 * 2.0 ** -24)
@@ -53,17 +53,17 @@ def hit_children(m, nodes, node, ray: Ray, t_best, active):
     rec = dr.gather(m.ArrayXf, nodes, node, active, shape=(NODE_FLOATS, dr.width(node)))
     out = []
     for side in (0, 1):
-        base = 6 * side
+        lo, hi = NODE_BOX_LO[side], NODE_BOX_HI[side]
         tn = m.Float(0.0)
         tf = m.Float(dr.inf)
         for c in range(3):
-            t0 = (rec[base + c] - ray.o[c]) * ray.inv[c]
-            t1 = (rec[base + 3 + c] - ray.o[c]) * ray.inv[c]
+            t0 = (rec[lo + c] - ray.o[c]) * ray.inv[c]
+            t1 = (rec[hi + c] - ray.o[c]) * ray.inv[c]
             tn = dr.maximum(tn, dr.minimum(t0, t1))
             tf = dr.minimum(tf, dr.maximum(t0, t1))
         hit = active & (tn <= tf * FAR_SCALE) & (tn <= t_best * FAR_SCALE)
         out.append((hit, tn))
-    links = dr.reinterpret_array(m.UInt32, rec[12]), dr.reinterpret_array(m.UInt32, rec[13])
+    links = [dr.reinterpret_array(m.UInt32, rec[NODE_LINK[side]]) for side in (0, 1)]
     return out[0][0], out[1][0], out[0][1], out[1][1], links[0], links[1]
 
 
@@ -79,9 +79,7 @@ def hit_triangle(m, tris, tri, ray: Ray, active):
 
     Hits are 0 < t; p = (1-u-v)*v0 + u*v1 + v*v2. Degenerate triangles (det = 0) never hit."""
     rec = dr.gather(m.ArrayXf, tris, tri, active, shape=(TRI_FLOATS, dr.width(tri)))
-    A = [rec[c] - ray.o[c] for c in range(3)]
-    B = [rec[3 + c] - ray.o[c] for c in range(3)]
-    C = [rec[6 + c] - ray.o[c] for c in range(3)]
+    A, B, C = ([rec[at + c] - ray.o[c] for c in range(3)] for at in TRI_VERTEX)
     Az, Bz, Cz = pick(A, ray.kz), pick(B, ray.kz), pick(C, ray.kz)
     Ax, Ay = pick(A, ray.kx) - ray.sx * Az, pick(A, ray.ky) - ray.sy * Az
     Bx, By = pick(B, ray.kx) - ray.sx * Bz, pick(B, ray.ky) - ray.sy * Bz
@@ -112,7 +110,7 @@ def hit_triangle(m, tris, tri, ray: Ray, active):
             p = [F64(rec[base + c]) - o64[c] for c in range(3)]
             pz = pick(p, ray.kz)
             return pick(p, ray.kx) - sx64 * pz, pick(p, ray.ky) - sy64 * pz
-        (ax, ay), (bx, by), (cx, cy) = sheared(0), sheared(3), sheared(6)
+        (ax, ay), (bx, by), (cx, cy) = (sheared(at) for at in TRI_VERTEX)
         U = dr.select(unsure_u, m.Float(cx * by - cy * bx), U)
         V = dr.select(unsure_v, m.Float(ax * cy - ay * cx), V)
         W = dr.select(unsure_w, m.Float(bx * ay - by * ax), W)
@@ -123,10 +121,10 @@ def hit_triangle(m, tris, tri, ray: Ray, active):
     # normal, rounded once: the sheared float formula (T / det) loses up to 1e-2 relative at short
     # range, this is within an ulp, and it gives identical t for duplicated triangles and for
     # coplanar faces on axis-aligned planes, so such ties go by primitive id, not by rounding.
-    n = [f64_from_halves(m, rec[10 + 2 * c], rec[11 + 2 * c]) for c in range(3)]
-    n_to_v0 = sum(n[c] * (F64(rec[c]) - F64(ray.o[c])) for c in range(3))
+    n = [f64_from_halves(m, rec[TRI_NORMAL + 2 * c], rec[TRI_NORMAL + 2 * c + 1]) for c in range(3)]
+    n_to_v0 = sum(n[c] * (F64(rec[TRI_VERTEX[0] + c]) - F64(ray.o[c])) for c in range(3))
     n_dot_d = sum(n[c] * F64(ray.d[c]) for c in range(3))
     t = m.Float(n_to_v0 / n_dot_d)
     hit = active & ~outside & (det != 0) & (n_dot_d != 0) & (t > 0)
-    prim = dr.reinterpret_array(m.UInt32, rec[9])
+    prim = dr.reinterpret_array(m.UInt32, rec[TRI_FACE])
     return hit, t, V * rcp, W * rcp, prim

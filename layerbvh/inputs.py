@@ -1,5 +1,7 @@
-"""Input checks that turn bad meshes, rays and parameters into ValueErrors naming what is wrong."""
+"""What the engine takes in: meshes, parameters and rays checked (bad input is a ValueError naming what is wrong), rays as a RayBatch."""
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import drjit as dr
 import numpy as np
@@ -12,6 +14,7 @@ def _first_bad_row(mask: np.ndarray) -> int:
 
 
 def check_mesh(vertices, faces, name: str = "mesh") -> tuple[np.ndarray, np.ndarray]:
+    """(float32 (V, 3) vertices, int64 (F, 3) faces), or a ValueError naming `name` and the bad row."""
     v = np.asarray(vertices)
     f = np.asarray(faces)
     if v.ndim != 2 or v.shape[1] != 3:
@@ -42,7 +45,18 @@ def check_mesh(vertices, faces, name: str = "mesh") -> tuple[np.ndarray, np.ndar
     return v, f
 
 
-def check_param(name: str, value, lo: int, hi: int) -> int:
+# Bounds (inclusive) of the build and trace parameters: the one place they are defined.
+PARAM_RANGES = {
+    "treelet_height": (1, 64),   # levels per treelet; the BVH is at most sah.MAX_DEPTH deep
+    "leaf_size": (1, 64),        # triangles per leaf at most
+    "batch_rays": (1, 1 << 31),  # rays per traced batch (work memory)
+    "tail_rays": (0, 1 << 31),   # rays left when the layer modes finish with one per-ray kernel
+}
+
+
+def check_param(name: str, value) -> int:
+    """`value` as an int if it is an integer within PARAM_RANGES[name], else a ValueError."""
+    lo, hi = PARAM_RANGES[name]
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
         raise ValueError(f"{name} must be an integer, got {value!r}")
     if not lo <= value <= hi:
@@ -54,14 +68,14 @@ def _width(x) -> int:
     return dr.width(x) if be.backend_of(x) is not None else len(x)
 
 
-def _column(x, name: str, backend: str):
-    """One per-ray float input as a Dr.Jit Float (any width) or a 1-D float32 numpy array."""
-    kind = be.backend_of(x)
-    if kind is not None:
-        if kind != backend:
-            raise ValueError(f"{name} is on the {kind} backend, this BVH on {backend}")
-        return be.module(backend).Float(x)
-    a = np.asarray(x, np.float32)
+def _column(x, name: str, backend: str, kind: str = "Float"):
+    """One per-ray input as a Dr.Jit array of `kind` (any width) or a 1-D numpy array."""
+    on = be.backend_of(x)
+    if on is not None:
+        if on != backend:
+            raise ValueError(f"{name} is on the {on} backend, this BVH on {backend}")
+        return getattr(be.module(backend), kind)(x)
+    a = np.asarray(x, np.float32 if kind == "Float" else bool)
     if a.ndim > 1:
         raise ValueError(f"{name} must be a scalar or have shape (N,), got {a.shape}")
     return a.reshape(-1)
@@ -82,18 +96,50 @@ def _components(x, name: str, backend: str) -> list:
     return [np.ascontiguousarray(a[:, c]) for c in range(3)]
 
 
+def _name(arg: str, c: int, x, xs, given) -> str:
+    """How an error names one input column: `origins[1]` for a component of a Dr.Jit vector."""
+    return f"{arg}[{c}]" if len(xs) > 1 and be.backend_of(given) is not None else arg
+
+
 def _broadcast(m, x, n: int):
-    """A Dr.Jit Float of width n from a column of width n or 1."""
+    """A Dr.Jit array of width n from a column of width n or 1."""
     if be.backend_of(x) is None:
-        x = m.Float(x)
+        x = m.Float(x) if x.dtype == np.float32 else m.Bool(x)
     if dr.width(x) == n:
         return x
-    return dr.gather(m.Float, x, dr.zeros(m.UInt32, n))
+    return dr.gather(type(x), x, dr.zeros(m.UInt32, n))
 
 
-def rays(m, backend: str, origins, directions, tmax):
-    """Rays as (o, d, tmax, valid) Dr.Jit arrays of one common width n, and a function turning
-    results back into the input's kind (Dr.Jit if origins or directions are, else numpy).
+@dataclass
+class RayBatch:
+    """Rays ready for the traversal: Dr.Jit arrays of one width on the BVH's backend.
+
+    `valid` is False for rays that are misses without tracing: inactive (the caller's mask),
+    NaN/Inf origin or direction, zero direction, tmax NaN or <= 0. `on_device` says whether the
+    caller passed Dr.Jit arrays (results go back as Dr.Jit arrays) or numpy."""
+
+    o: list
+    d: list
+    tmax: object
+    valid: object
+    on_device: bool
+
+    @property
+    def n(self) -> int:
+        return dr.width(self.tmax)
+
+    def take(self, idx) -> "RayBatch":
+        """The rays `idx` (a sub-batch), as a new batch."""
+        g = (lambda x: dr.gather(type(x), x, idx))
+        return RayBatch([g(c) for c in self.o], [g(c) for c in self.d], g(self.tmax), g(self.valid), self.on_device)
+
+    def to_caller(self, x):
+        """A result array in the caller's kind: Dr.Jit as it is, else numpy."""
+        return x if self.on_device else x.numpy()
+
+
+def ray_batch(m, backend: str, origins, directions, tmax=None, active=None) -> RayBatch:
+    """The caller's rays as a RayBatch of one common width n.
 
     Every input is broadcast to the ray count: a width-1 Dr.Jit array (Mitsuba's camera rays
     carry `maxt` as one, a broadcast scalar), a numpy (3,) point or vector, a Python scalar.
@@ -104,28 +150,26 @@ def rays(m, backend: str, origins, directions, tmax):
              "directions": _components(directions, "directions", backend)}
     if tmax is not None:
         parts["tmax"] = [_column(tmax, "tmax", backend)]
-    n = max(_width(x) for xs in parts.values() for x in xs)
-    if any(_width(x) == 0 for xs in parts.values() for x in xs):
-        n = 0  # an empty input is an empty batch (a width-1 input does not make it one ray)
-    for name, xs in parts.items():
-        for c, x in enumerate(xs):
-            w = _width(x)
-            if w not in (1, n):
-                comp = f"{name}[{c}]" if name != "tmax" else name
-                raise ValueError(f"{comp} has {w} entries, the other ray inputs {n}: each input must have "
-                                 f"one entry per ray or a single one for all rays")
-    bcast = (lambda x: _broadcast(m, x, n))
-    oj = [bcast(x) for x in parts["origins"]]
-    dj = [bcast(x) for x in parts["directions"]]
-    tm = bcast(parts["tmax"][0]) if "tmax" in parts else dr.full(m.Float, dr.inf, n)
+    if active is not None:
+        parts["active"] = [_column(active, "active", backend, "Bool")]
+    named = [(_name(k, c, x, xs, origins if k == "origins" else directions), _width(x))
+             for k, xs in parts.items() for c, x in enumerate(xs)]
+    n = 0 if any(w == 0 for _, w in named) else max(w for _, w in named)  # empty input: empty batch
+    longest = next(name for name, w in named if w == n)
+    for name, w in named:
+        if w not in (1, n):
+            raise ValueError(f"{name} has {w} entries, {longest} has {n}: each ray input needs one entry per ray "
+                             f"or a single one for all rays")
+    o = [_broadcast(m, x, n) for x in parts["origins"]]
+    d = [_broadcast(m, x, n) for x in parts["directions"]]
+    tm = _broadcast(m, parts["tmax"][0], n) if "tmax" in parts else dr.full(m.Float, dr.inf, n)
     on_device = be.backend_of(origins) is not None or be.backend_of(directions) is not None
-
-    def back(x):
-        return x if on_device else x.numpy()
     if n == 0:  # Dr.Jit compares a 0-sized array with a literal as a size mismatch
-        return oj, dj, tm, dr.zeros(m.Bool, 0), n, back
-    finite = dr.isfinite(oj[0]) & dr.isfinite(oj[1]) & dr.isfinite(oj[2])
-    finite &= dr.isfinite(dj[0]) & dr.isfinite(dj[1]) & dr.isfinite(dj[2])
-    nonzero = (dj[0] != 0) | (dj[1] != 0) | (dj[2] != 0)
+        return RayBatch(o, d, tm, dr.zeros(m.Bool, 0), on_device)
+    finite = dr.isfinite(o[0]) & dr.isfinite(o[1]) & dr.isfinite(o[2])
+    finite &= dr.isfinite(d[0]) & dr.isfinite(d[1]) & dr.isfinite(d[2])
+    nonzero = (d[0] != 0) | (d[1] != 0) | (d[2] != 0)
     valid = finite & nonzero & ~dr.isnan(tm) & (tm > 0)
-    return oj, dj, tm, valid, n, back
+    if "active" in parts:
+        valid &= _broadcast(m, parts["active"][0], n)
+    return RayBatch(o, d, tm, valid, on_device)

@@ -1,12 +1,13 @@
 """Layer BVH layout: the binary BVH cut into treelets, stored treelet by treelet, and its invariant check."""
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numba
 import numpy as np
 
-from .sah import BinaryBVH
+from .sah import BinaryBVH, build_binned_sah, triangle_bounds
 
 # Child links (uint32). Bit 31: BVH leaf, payload = leaf index. Bit 30: exit into a child
 # treelet, payload = treelet id (its root is `treelet_first[id]`). Neither: inner node of the
@@ -14,25 +15,39 @@ from .sah import BinaryBVH
 LEAF_BIT = np.uint32(1 << 31)
 EXIT_BIT = np.uint32(1 << 30)
 PAYLOAD_MASK = np.uint32((1 << 30) - 1)
-NODE_FLOATS = 16
-TRI_FLOATS = 16
+# A link value no node, leaf or exit has: "take the next entry from the stack". It is not the
+# MISS of a result (state.MISS), only equal to it in bits.
+POP = 0xFFFFFFFF
+
+# Inner-node record, float32 slots (uint32 bits where noted). Index [side] = left (0), right (1).
+NODE_BOX_LO = (0, 6)    # 3 floats: child box minimum (x, y, z)
+NODE_BOX_HI = (3, 9)    # 3 floats: child box maximum
+NODE_LINK = (12, 13)    # uint32: child link (LEAF_BIT / EXIT_BIT / node index)
+NODE_DEPTH = 14         # float: depth of the node in the BVH (read by the invariant check only)
+NODE_FLOATS = 16        # slot 15 unused; total: 64 bytes, one cache line
+
+# Triangle record, float32 slots, one per triangle in leaf order.
+TRI_VERTEX = (0, 3, 6)  # 3 floats each: v0, v1, v2 (x, y, z)
+TRI_FACE = 9            # uint32: the caller's face index
+TRI_NORMAL = 10         # 3 float64 in slots 10..15 (low word first): (v1 - v0) x (v2 - v0)
+TRI_FLOATS = 16         # total: 64 bytes, one cache line
+
+# Leaf record, uint32 slots.
+LEAF_FIRST = 0          # first triangle (leaf order)
+LEAF_COUNT = 1          # number of triangles
+LEAF_UINTS = 2          # total: 8 bytes
 
 
 @dataclass
 class LayerLayout:
     """The arrays the traversal kernels read, all flat and contiguous.
 
-    nodes           float32 (N*16): one 64-byte record per inner node, treelet 0's nodes first,
-                    each treelet's nodes breadth-first:
-                      [0:3] left child box lo, [3:6] left hi, [6:9] right lo, [9:12] right hi,
-                      [12] left link, [13] right link (uint32 bits, see LEAF_BIT/EXIT_BIT),
-                      [14] depth of the node in the BVH, [15] unused (0)
-    leaves          uint32 (L*2): per BVH leaf (first triangle, triangle count), grouped by the
-                    treelet of the leaf's parent, in that treelet's breadth-first order
-    tris            float32 (F*16): per triangle in leaf order, one 64-byte record (a cache line):
-                    [0:9] v0, v1, v2 (xyz each), [9] original face index (uint32 bits),
-                    [10:16] geometric normal (v1 - v0) x (v2 - v0) as three float64 (the bits of
-                    each in two consecutive slots, little-endian)
+    nodes           float32 (N*16): one 64-byte record per inner node (fields NODE_*), treelet
+                    0's nodes first, each treelet's nodes breadth-first
+    leaves          uint32 (L*2): per BVH leaf (first triangle, triangle count: LEAF_*), grouped
+                    by the treelet of the leaf's parent, in that treelet's breadth-first order
+    tris            float32 (F*16): per triangle in leaf order, one 64-byte record (fields TRI_*):
+                    vertices, the caller's face index, the float64 geometric normal
     treelet_first   uint32 (T+1): first node of each treelet, plus the node count at the end
     node_treelet    uint32 (N): treelet of each inner node
     leaf_treelet    uint32 (L): treelet of each leaf's parent
@@ -66,7 +81,15 @@ class LayerLayout:
         return np.diff(self.treelet_first)
 
     def links(self) -> np.ndarray:
-        return self.nodes.reshape(-1, NODE_FLOATS)[:, 12:14].view(np.uint32)
+        return self.nodes.reshape(-1, NODE_FLOATS)[:, NODE_LINK[0]:NODE_LINK[1] + 1].view(np.uint32)
+
+    def to_device(self, m) -> "DeviceLayout":
+        """The arrays on Dr.Jit array module `m` (backend.module)."""
+        return DeviceLayout(
+            nodes=m.Float(self.nodes), leaves=m.UInt32(self.leaves), tris=m.Float(self.tris),
+            treelet_first=m.UInt32(self.treelet_first), node_treelet=m.UInt32(self.node_treelet),
+            leaf_treelet=m.UInt32(self.leaf_treelet), depth=self.depth, height=self.height,
+            treelet_count=self.treelet_count)
 
     def array_bytes(self) -> dict:
         return {name: int(getattr(self, name).nbytes)
@@ -75,7 +98,8 @@ class LayerLayout:
 
 @dataclass
 class DeviceLayout:
-    """A LayerLayout's arrays on the Dr.Jit device (same byte layout, see layout.LayerLayout)."""
+    """A LayerLayout's arrays on the Dr.Jit device (same byte layout, see LayerLayout); made by
+    LayerLayout.to_device."""
 
     nodes: object
     leaves: object
@@ -140,11 +164,11 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray, faces: np.ndarray, heigh
 
     l, r = b.left[order], b.left[order] + 1
     rec = np.zeros((len(order), NODE_FLOATS), np.float32)
-    rec[:, 0:3], rec[:, 3:6] = b.lo[l], b.hi[l]
-    rec[:, 6:9], rec[:, 9:12] = b.lo[r], b.hi[r]
-    rec[:, 12] = link(l, order).view(np.float32)
-    rec[:, 13] = link(r, order).view(np.float32)
-    rec[:, 14] = b.depth[order]
+    for side, child in enumerate((l, r)):
+        rec[:, NODE_BOX_LO[side]:NODE_BOX_LO[side] + 3] = b.lo[child]
+        rec[:, NODE_BOX_HI[side]:NODE_BOX_HI[side] + 3] = b.hi[child]
+        rec[:, NODE_LINK[side]] = link(child, order).view(np.float32)
+    rec[:, NODE_DEPTH] = b.depth[order]
 
     # Triangles in leaf order: leaf i covers tris[first_i : first_i + count_i].
     counts = b.count[leaf_order]
@@ -156,7 +180,7 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray, faces: np.ndarray, heigh
     tre_first = np.searchsorted(tre[order], np.arange(n_treelets + 1)).astype(np.uint32)
     return LayerLayout(
         nodes=rec.reshape(-1),
-        leaves=np.stack([first, counts], 1).astype(np.uint32).reshape(-1),
+        leaves=_leaf_records(first, counts),
         tris=tri.reshape(-1),
         treelet_first=tre_first,
         node_treelet=tre[order].astype(np.uint32),
@@ -174,15 +198,22 @@ def _triangle_records(vertices, faces, tri_ids, out, out_u32, out_f64):
         fid = tri_ids[j]
         for k in range(3):
             for a in range(3):
-                out[j, 3 * k + a] = vertices[faces[fid, k], a]
-        out_u32[j, 9] = np.uint32(fid)
-        p0x, p0y, p0z = np.float64(out[j, 0]), np.float64(out[j, 1]), np.float64(out[j, 2])
-        e1x, e1y, e1z = out[j, 3] - p0x, out[j, 4] - p0y, out[j, 5] - p0z
-        e2x, e2y, e2z = out[j, 6] - p0x, out[j, 7] - p0y, out[j, 8] - p0z
-        # float64 slots 5, 6, 7 are float32 slots 10..15
-        out_f64[j, 5] = e1y * e2z - e1z * e2y
-        out_f64[j, 6] = e1z * e2x - e1x * e2z
-        out_f64[j, 7] = e1x * e2y - e1y * e2x
+                out[j, TRI_VERTEX[k] + a] = vertices[faces[fid, k], a]
+        out_u32[j, TRI_FACE] = np.uint32(fid)
+        v0, v1, v2 = TRI_VERTEX
+        p0x, p0y, p0z = np.float64(out[j, v0]), np.float64(out[j, v0 + 1]), np.float64(out[j, v0 + 2])
+        e1x, e1y, e1z = out[j, v1] - p0x, out[j, v1 + 1] - p0y, out[j, v1 + 2] - p0z
+        e2x, e2y, e2z = out[j, v2] - p0x, out[j, v2 + 1] - p0y, out[j, v2 + 2] - p0z
+        n = TRI_NORMAL // 2  # the normal's float64 slots
+        out_f64[j, n] = e1y * e2z - e1z * e2y
+        out_f64[j, n + 1] = e1z * e2x - e1x * e2z
+        out_f64[j, n + 2] = e1x * e2y - e1y * e2x
+
+
+def _leaf_records(first: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    rec = np.zeros((len(first), LEAF_UINTS), np.uint32)
+    rec[:, LEAF_FIRST], rec[:, LEAF_COUNT] = first, counts
+    return rec.reshape(-1)
 
 
 def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
@@ -221,24 +252,26 @@ def check_layout(lay: LayerLayout, n_faces: int) -> None:
     # Breadth-first inside each treelet: children come after parents; height is respected.
     parents = np.repeat(np.arange(n)[:, None], 2, 1)
     assert np.all(payload[inner] > parents[inner]), "a child node precedes its parent"
-    depth = rec[:, 14].astype(np.int64)
+    depth = rec[:, NODE_DEPTH].astype(np.int64)
     assert np.all(depth[payload[inner]] == depth[parents[inner]] + 1), "child depth is not parent depth + 1"
     root_depth = depth[tf[:-1]]
     assert np.all(depth - root_depth[lay.node_treelet] < h), "a treelet is taller than its height"
     assert np.all(np.diff(depth[tf[:-1]]) >= 0) or nt == 1, "treelets are not in breadth-first order"
     # Every triangle in exactly one leaf, leaves contiguous in triangle order.
-    lv = lay.leaves.reshape(-1, 2).astype(np.int64)
-    assert lv[:, 0].tolist() == (np.cumsum(lv[:, 1]) - lv[:, 1]).tolist(), "leaf triangle ranges are not contiguous"
-    assert lv[:, 1].sum() == n_faces, "leaves do not cover every triangle exactly once"
-    ids = lay.tris.reshape(-1, TRI_FLOATS)[:, 9].view(np.uint32)
+    lv = lay.leaves.reshape(-1, LEAF_UINTS).astype(np.int64)
+    first, count = lv[:, LEAF_FIRST], lv[:, LEAF_COUNT]
+    assert first.tolist() == (np.cumsum(count) - count).tolist(), "leaf triangle ranges are not contiguous"
+    assert count.sum() == n_faces, "leaves do not cover every triangle exactly once"
+    ids = lay.tris.reshape(-1, TRI_FLOATS)[:, TRI_FACE].view(np.uint32)
     assert np.array_equal(np.sort(ids), np.arange(n_faces, dtype=np.uint32)), "triangle ids are not a permutation"
     # Child boxes bound what is below them.
-    tri = lay.tris.reshape(-1, TRI_FLOATS)[:, :9].reshape(-1, 3, 3)
+    tri = lay.tris.reshape(-1, TRI_FLOATS)[:, TRI_VERTEX[0]:TRI_VERTEX[2] + 3].reshape(-1, 3, 3)
+    box = (lambda r, at: r[:, at:at + 3])
     for side in (0, 1):
-        box_lo, box_hi = rec[:, 6 * side:6 * side + 3], rec[:, 6 * side + 3:6 * side + 6]
+        box_lo, box_hi = box(rec, NODE_BOX_LO[side]), box(rec, NODE_BOX_HI[side])
         lk = is_leaf[:, side]
         for i in np.nonzero(lk)[0][:: max(1, lk.sum() // 2000)]:  # a sample keeps the check fast
-            s, c = lv[payload[i, side]]
+            s, c = first[payload[i, side]], count[payload[i, side]]
             if c:
                 t = tri[s:s + c]
                 assert np.all(t.min((0, 1)) >= box_lo[i]) and np.all(t.max((0, 1)) <= box_hi[i]), \
@@ -246,7 +279,25 @@ def check_layout(lay: LayerLayout, n_faces: int) -> None:
         nk = ~lk
         kid = child_node[nk, side]
         kid_box = rec[kid]
-        enclose_lo = np.minimum(kid_box[:, 0:3], kid_box[:, 6:9])
-        enclose_hi = np.maximum(kid_box[:, 3:6], kid_box[:, 9:12])
+        enclose_lo = np.minimum(box(kid_box, NODE_BOX_LO[0]), box(kid_box, NODE_BOX_LO[1]))
+        enclose_hi = np.maximum(box(kid_box, NODE_BOX_HI[0]), box(kid_box, NODE_BOX_HI[1]))
         assert np.all(box_lo[nk] <= enclose_lo) and np.all(box_hi[nk] >= enclose_hi), \
             f"a child box (side {side}) does not contain its node's children"
+
+
+_builder_kernels_loaded = False
+
+
+def load_builder_kernels() -> float:
+    """Compile the builder's and the layout's numba kernels (or load them from numba's on-disk
+    cache) by building a tiny mesh; the seconds it took, 0.0 once done in this process. Kept
+    out of the build time, as Dr.Jit's kernel compilation is kept out of trace times."""
+    global _builder_kernels_loaded
+    if _builder_kernels_loaded:
+        return 0.0
+    t0 = time.perf_counter()
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
+    f = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3], [0, 1, 2], [0, 2, 3]], np.int64)
+    to_layer_layout(build_binned_sah(*triangle_bounds(v, f), 1), v, f, 1)
+    _builder_kernels_loaded = True
+    return time.perf_counter() - t0

@@ -4,10 +4,8 @@ from __future__ import annotations
 import drjit as dr
 
 from .geometry import FAR_SCALE, Ray, hit_children, hit_triangle
-from .layout import EXIT_BIT, LEAF_BIT, PAYLOAD_MASK, DeviceLayout
-from .state import RaySource, RayState
-
-POP = 0xFFFFFFFF  # link value: "take the next entry from the stack"
+from .layout import EXIT_BIT, LEAF_BIT, LEAF_COUNT, LEAF_FIRST, LEAF_UINTS, PAYLOAD_MASK, POP, DeviceLayout
+from .state import RayState
 
 
 def treelet_of(m, lay: DeviceLayout, link, active):
@@ -21,10 +19,11 @@ def treelet_of(m, lay: DeviceLayout, link, active):
 
 
 @dr.syntax
-def walk(m, lay: DeviceLayout, rays: RaySource, s: RayState, stack, cap: int, bounded: bool, any_hit: bool,
+def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool, any_hit: bool,
          count_work: bool = True):
     """Advance every ray of `s`, nearest child first, until it finishes or (when `bounded`)
-    is about to continue in another treelet than `s.treelet`.
+    is about to continue in another treelet than `s.treelet`. `rays` (state.SlotRays or
+    state.RayRecords) gives each slot's origin and direction.
 
     With `count_work` False the work counters are left untouched (no statistics work).
     Entries pushed during this call live in a local stack of `cap` entries; entries pushed by
@@ -39,7 +38,7 @@ def walk(m, lay: DeviceLayout, rays: RaySource, s: RayState, stack, cap: int, bo
     nl = m.UInt32(0)
     link, sp = m.UInt32(s.link), m.UInt32(s.sp)
     t_best, u_best, v_best = m.Float(s.t), m.Float(s.u), m.Float(s.v)
-    prim_best, tri_best = m.UInt32(s.prim), m.UInt32(s.tri)
+    prim_best = m.UInt32(s.prim)
     zero = m.UInt32(0)
     n_inner, n_leaf, n_tri, n_iter = (m.UInt32(c) if count_work else zero
                                       for c in (s.n_inner, s.n_leaf, s.n_tri, s.n_iter))
@@ -68,7 +67,6 @@ def walk(m, lay: DeviceLayout, rays: RaySource, s: RayState, stack, cap: int, bo
             u_best = dr.select(closer, u, u_best)
             v_best = dr.select(closer, v, v_best)
             prim_best = dr.select(closer, prim, prim_best)
-            tri_best = dr.select(closer, tri_cur, tri_best)
             if any_hit:
                 done |= closer
                 active &= ~closer
@@ -84,8 +82,8 @@ def walk(m, lay: DeviceLayout, rays: RaySource, s: RayState, stack, cap: int, bo
 
         # Leaf entry: read the triangle range.
         leaf = link & PAYLOAD_MASK
-        first = dr.gather(m.UInt32, lay.leaves, 2 * leaf, is_leaf)
-        count = dr.gather(m.UInt32, lay.leaves, 2 * leaf + 1, is_leaf)
+        first = dr.gather(m.UInt32, lay.leaves, LEAF_UINTS * leaf + LEAF_FIRST, is_leaf)
+        count = dr.gather(m.UInt32, lay.leaves, LEAF_UINTS * leaf + LEAF_COUNT, is_leaf)
         tri_cur = dr.select(is_leaf, first, dr.select(in_leaf, tri_cur + 1, tri_cur))
         tri_end = dr.select(is_leaf, first + count, tri_end)
 
@@ -128,7 +126,7 @@ def walk(m, lay: DeviceLayout, rays: RaySource, s: RayState, stack, cap: int, bo
             next_treelet = dr.select(leave_pop, tre, dr.select(leave_exit, near & PAYLOAD_MASK, next_treelet))
             active &= ~(leave_pop | leave_exit)
 
-    out = RayState(t=t_best, u=u_best, v=v_best, prim=prim_best, tri=tri_best, link=link, sp=sp, slot=s.slot,
+    out = RayState(t=t_best, u=u_best, v=v_best, prim=prim_best, link=link, sp=sp, slot=s.slot,
                    treelet=next_treelet)
     if count_work:
         out.n_inner, out.n_leaf, out.n_tri, out.n_iter = n_inner, n_leaf, n_tri, n_iter

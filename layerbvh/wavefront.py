@@ -5,9 +5,10 @@ import time
 
 import drjit as dr
 
-from .stats import TraceStats
+from .inputs import RayBatch
 from .layout import DeviceLayout
-from .state import NO_HIT, RaySource, RayState, Results, _initial_state, _take
+from .state import RayRecords, RayState, Results, SlotRays
+from .stats import TraceStats
 from .walk import walk
 
 MODES = ("per_ray", "layer_sorted", "layer_unsorted")
@@ -22,25 +23,24 @@ def _sync():
     return time.perf_counter()
 
 
-def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool, tail_rays: int = TAIL_RAYS,
+def trace(m, lay: DeviceLayout, batch: RayBatch, mode: str, any_hit: bool, tail_rays: int = TAIL_RAYS,
           count_work: bool = True):
-    """Closest hit (or any hit) of every ray; returns (Results, TraceStats)."""
-    n = dr.width(o[0])
+    """Closest hit (or any hit) of every ray of `batch`; returns (Results, TraceStats)."""
+    n = batch.n
     stats = TraceStats(mode=mode, rays=n)
     res = Results(m, n)
-    s = _initial_state(m, n, tmax, count_work)
-    # Invalid rays (NaN/Inf/zero direction) are misses and never enter a kernel.
-    idx = dr.compress(valid)
-    s = _take(m, s, idx)
+    # Invalid and inactive rays are misses and never enter a kernel.
+    idx = dr.compress(batch.valid)
     if dr.width(idx) == 0:  # no valid ray: Dr.Jit kernels cannot run on empty arrays
         return res, stats
-    rays = RaySource(m, o, d, interleaved=mode != "per_ray")
+    s = RayState.start(m, batch.tmax, count_work).take(idx)
+    rays = SlotRays(m, batch.o, batch.d) if mode == "per_ray" else RayRecords(m, batch.o, batch.d)
     t0 = _sync()
     if mode == "per_ray":
         cap = max(lay.depth, 1)
         out, done, _, _ = walk(m, lay, rays, s, None, cap, False, any_hit, count_work)
         res.write(out, done)
-        dr.eval(res.t, res.u, res.v, res.tri, res.work)
+        dr.eval(*res.arrays())
         t1 = _sync()
         stats.steps = 1
         stats.active_per_step = [dr.width(s.t)]
@@ -67,7 +67,7 @@ def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool, tai
             # Same nearest-first order as the steps, so the same hits and work counts.
             out, done, _, _ = walk(m, lay, rays, s, (st_link, st_t, cap_global), cap_global, False, any_hit, count_work)
             res.write(out, done)
-            dr.eval(res.t, res.u, res.v, res.tri, res.work)
+            dr.eval(*res.arrays())
             stats.time_traverse_s += _sync() - ta
             stats.tail_rays = n_active
             stats.steps += 1
@@ -84,7 +84,7 @@ def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool, tai
         out.sp = out.sp + nl
         res.write(out, done)
         keys = dr.select(done, m.UInt32(finished), out.treelet)
-        dr.eval(st_link, st_t, out.sp, keys, res.t, res.u, res.v, res.tri, res.work)
+        dr.eval(st_link, st_t, out.sp, keys, *res.arrays())
         tc = _sync()
         n_active = n_active - int(dr.count(done)[0])
         if n_active == 0:
@@ -100,7 +100,7 @@ def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool, tai
             perm = dr.compress(~done)
         dr.eval(perm)
         td = _sync()
-        s = _take(m, out, perm)
+        s = out.take(perm)
         dr.eval(s)
         te = _sync()
         peak = max(peak, dr.width(keys) * (2 * state_bytes + cap_local * ENTRY_BYTES + 8))
@@ -108,6 +108,6 @@ def trace(m, lay: DeviceLayout, o, d, tmax, valid, mode: str, any_hit: bool, tai
         stats.time_traverse_s += tb - ta
         stats.time_other_s += (tc - tb) + (te - td)
         stats.time_sort_s += td - tc
-    # entry stacks, ray records (RaySource), ray in/out arrays
-    stats.work_bytes = peak + n * cap_global * ENTRY_BYTES + n * 4 * RaySource.STRIDE + n * 4 * 10
+    # entry stacks, ray records, ray in/out arrays
+    stats.work_bytes = peak + n * cap_global * ENTRY_BYTES + n * 4 * RayRecords.STRIDE + n * 4 * 10
     return res, stats

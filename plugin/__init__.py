@@ -1,11 +1,16 @@
-"""layerbvh_mitsuba: the Mitsuba 3 side of layerbvh; importing it registers the `layerbvh` integrator."""
+"""layerbvh_mitsuba: the Mitsuba 3 side of layerbvh; importing it registers the `layerbvh` integrator
+with the active Mitsuba variant, and again with each variant set later (no variant is set here)."""
 import mitsuba as _mi
 
-if _mi.variant() is None:
-    _mi.set_variant("llvm_ad_rgb")
+from .integrator import LayerBVHPathTracer, integrator_class, register
 
-from .integrator import LayerBVHIntegrator, register  # noqa: E402
+
+def _on_variant_change(_old, new):
+    if new is not None:
+        register(new)
+
 
 register()
+_mi.detail.add_variant_callback(_on_variant_change)
 
-__all__ = ["LayerBVHIntegrator", "register"]
+__all__ = ["LayerBVHPathTracer", "integrator_class", "register"]

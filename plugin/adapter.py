@@ -53,12 +53,9 @@ def collect_geometry(scene) -> SceneGeometry:
     for i, shape in enumerate(scene.shapes()):
         names.append(describe(shape, i))
         if shape.is_mesh():
-            v = np.array(shape.vertex_positions_buffer(), np.float32).reshape(-1, 3)
-            f = np.array(shape.faces_buffer(), np.int64).reshape(-1, 3)
-            bad = ~np.isfinite(v).all(axis=1)
-            if bad.any():
-                raise ValueError(f"shape {describe(shape)}: vertex {int(np.argmax(bad))} is not finite "
-                                 f"({int(bad.sum())} non-finite vertices)")
+            v, f = layerbvh.check_mesh(np.array(shape.vertex_positions_buffer()).reshape(-1, 3),
+                                       np.array(shape.faces_buffer(), np.int64).reshape(-1, 3),
+                                       name=f"shape {describe(shape)}")
             verts.append(v)
             faces.append(f + offset)
             tri_shape.append(np.full(len(f), i, np.uint32))
@@ -84,7 +81,7 @@ class SceneTracer:
     Built once per scene; every query returns Mitsuba types (PreliminaryIntersection3f, Bool)."""
 
     def __init__(self, scene, traversal: str = "auto", treelet_height: int = 4, leaf_size: int = 4,
-                 count_work: bool = True, batch_rays: int = layerbvh.bvh.BATCH_RAYS):
+                 count_work: bool = True, batch_rays: int = layerbvh.BATCH_RAYS):
         t0 = time.perf_counter()
         self.scene = scene
         self.geometry = collect_geometry(scene)
@@ -104,24 +101,22 @@ class SceneTracer:
         self.trace_s = 0.0
         self.trace_stats = []
 
-    def _query(self, fn, ray, active):
+    def _query(self, fn):
         t0 = time.perf_counter()
-        o = dr.select(active, ray.o, mi.Point3f(dr.nan))  # inactive lanes become invalid rays: misses
-        out = fn(o, ray.d, ray.maxt)
-        dr.eval(out)
+        out = fn()
         self.trace_s += time.perf_counter() - t0
+        self.trace_stats.append(out.stats)
         return out
 
-    def intersect(self, ray: mi.Ray3f, active, kind="camera") -> mi.PreliminaryIntersection3f:
+    def intersect(self, ray: mi.Ray3f, active, hint: str = "camera", kind=None) -> mi.PreliminaryIntersection3f:
         """Closest hit over meshes (our traversal) and analytic shapes (Mitsuba's per-shape test).
-        `kind` (a record.KINDS name or an array of codes) labels the rays for a recorder."""
+        `hint` ('camera' or 'bounce') names the kind of batch for auto's decision; `kind` (an
+        array of record.KINDS codes, default: the hint) labels the rays for a recorder."""
         active = mi.Bool(active)
         if self.recorder is not None:
-            self.recorder.add(kind, ray, active)
-        hint = "camera" if isinstance(kind, str) and kind == "camera" else "bounce"
-        hits = self._query(lambda o, d, tmax: self.bvh.trace(o, d, tmax, mode=self.traversal, stats=self.count_work,
-                                                             hint=hint), ray, active)
-        self.trace_stats.append(hits.stats)
+            self.recorder.add(hint if kind is None else kind, ray, active)
+        hits = self._query(lambda: self.bvh.trace(ray.o, ray.d, ray.maxt, mode=self.traversal, stats=self.count_work,
+                                                  hint=hint, active=active))
         hit = active & (mi.UInt32(hits.prim) != layerbvh.MISS)
         pi = dr.zeros(mi.PreliminaryIntersection3f, dr.width(ray.o))
         pi.t = dr.select(hit, mi.Float(hits.t), dr.inf)
@@ -148,9 +143,8 @@ class SceneTracer:
         active = mi.Bool(active)
         if self.recorder is not None:
             self.recorder.add("shadow", ray, active)
-        occ = mi.Bool(self._query(lambda o, d, tmax: self.bvh.occluded(o, d, tmax, mode=self.traversal,
-                                                                     stats=self.count_work, hint="shadow"), ray, active))
-        self.trace_stats.append(self.bvh.last_occluded_stats)
+        occ = mi.Bool(self._query(lambda: self.bvh.occluded(ray.o, ray.d, ray.maxt, mode=self.traversal,
+                                                            stats=self.count_work, hint="shadow", active=active)).occluded)
         occ &= active
         for _, shape in self.geometry.analytic:
             occ |= active & shape.ray_test(ray, active)

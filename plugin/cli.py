@@ -7,8 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_path
-from .render import CliError, load_scene, path_props, render_passes, scene_spp
+from .render import UserError, load_scene, path_props, render_passes, scene_spp, use_variant, write_exr
 
 
 
@@ -53,20 +52,22 @@ def _parser() -> argparse.ArgumentParser:
 
 def _check_args(args):
     if not Path(args.scene).is_file():
-        raise CliError(f"scene file not found: {args.scene}")
+        raise UserError(f"scene file not found: {args.scene}")
     if args.command == "converge":
         if args.res is not None and min(args.res) < 1:
-            raise CliError(f"--res must be positive, got {args.res[0]} {args.res[1]}")
+            raise UserError(f"--res must be positive, got {args.res[0]} {args.res[1]}")
         return
     if args.spp is not None and args.spp < 1:
-        raise CliError(f"--spp must be >= 1, got {args.spp}")
+        raise UserError(f"--spp must be >= 1, got {args.spp}")
     if args.res is not None and min(args.res) < 1:
-        raise CliError(f"--res must be positive, got {args.res[0]} {args.res[1]}")
-    import layerbvh
-    if args.traversal not in layerbvh.TRACE_MODES:
-        raise CliError(f"--traversal must be one of {', '.join(layerbvh.TRACE_MODES)}; got {args.traversal!r}")
-    if not 1 <= args.treelet_height <= 64:
-        raise CliError(f"--treelet-height must be in [1, 64], got {args.treelet_height}")
+        raise UserError(f"--res must be positive, got {args.res[0]} {args.res[1]}")
+    from .integrator import check_settings
+    try:
+        check_settings(max_depth=-1, rr_depth=5, traversal=args.traversal, treelet_height=args.treelet_height,
+                       leaf_size=args.leaf_size, batch_rays=1)
+    except ValueError as e:  # the integrator's own rule, named as the option: "--treelet-height must ..."
+        name, _, rule = str(e).partition(" ")
+        raise UserError(f"--{name.replace('_', '-')} {rule}") from None
 
 
 def _ours(mi, args, props, stats=False):
@@ -76,22 +77,17 @@ def _ours(mi, args, props, stats=False):
     return mi.load_dict(d)
 
 
-def _atomic_write_exr(mi, img: np.ndarray, out: str):
-    with atomic_path(out) as tmp:
-        mi.Bitmap(img).write(tmp)
-
-
 def cmd_render(mi, args) -> int:
     if not args.output.endswith(".exr"):
-        raise CliError(f"-o must name an .exr file, got {args.output}")
+        raise UserError(f"-o must name an .exr file, got {args.output}")
     scene = load_scene(mi, args.scene, args.res)
     spp = args.spp or scene_spp(scene)
     integ = _ours(mi, args, path_props(mi, scene))
     integ.tracer(scene)  # build the BVH (and refuse unsupported shapes) before rendering
     img, secs = render_passes(mi, scene, integ, spp, args.seed, "layerbvh", not args.no_progress)
     if not np.isfinite(img).all():
-        raise CliError(f"render produced {int((~np.isfinite(img)).any(-1).sum())} NaN/Inf pixels; nothing written")
-    _atomic_write_exr(mi, img, args.output)
+        raise UserError(f"render produced {int((~np.isfinite(img)).any(-1).sum())} NaN/Inf pixels; nothing written")
+    write_exr(args.output, img)
     st = integ.last_stats
     print(f"wrote {args.output} ({img.shape[1]}x{img.shape[0]}, {spp} spp) in {secs:.2f} s; "
           f"BVH build {st.get('build_s', 0):.2f} s, trace {st.get('trace_s', 0):.2f} s")
@@ -133,12 +129,7 @@ def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
         _check_args(args)
-        import mitsuba as mi
-        try:
-            mi.set_variant(args.variant)
-        except Exception:
-            raise CliError(f"Mitsuba variant {args.variant!r} is not available") from None
-        import layerbvh_mitsuba  # noqa: F401  (registers the integrator)
+        mi = use_variant(args.variant)
         from .adapter import UnsupportedShapeError
         try:
             if args.command == "converge":
@@ -147,10 +138,10 @@ def main(argv=None) -> int:
                 return 0
             return cmd_render(mi, args) if args.command == "render" else cmd_compare(mi, args)
         except UnsupportedShapeError as e:
-            raise CliError(str(e)) from None
+            raise UserError(str(e)) from None
         except ValueError as e:
-            raise CliError(str(e)) from None
-    except CliError as e:
+            raise UserError(str(e)) from None
+    except UserError as e:
         print(f"layerbvh: error: {e}", file=sys.stderr)
         return 2
 

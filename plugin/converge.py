@@ -64,11 +64,9 @@ def parse_configs(text: str) -> list[Config]:
             cfg = Config("stock")
         elif mode in layerbvh.TRACE_MODES:
             try:
-                h = int(height) if height else 4
-            except ValueError:
-                raise ConvergeError(f"--configs: treelet height in {item!r} is not an integer") from None
-            if not 1 <= h <= 64:
-                raise ConvergeError(f"--configs: treelet height in {item!r} must be in [1, 64]")
+                h = layerbvh.check_param("treelet_height", int(height) if height else 4)
+            except ValueError as e:
+                raise ConvergeError(f"--configs: treelet height in {item!r}: {e}") from None
             plain = mode == "per_ray" or (mode == "auto" and not height)
             cfg = Config(mode if plain else f"{mode}:{h}", traversal=mode, treelet_height=h)
         else:
@@ -133,7 +131,7 @@ def default_cache_dir() -> Path:
 
 def reference(mi, scene, scene_path: Path, settings: dict, cache: Path, progress: bool) -> tuple[np.ndarray, dict]:
     """The stock reference image: read from the cache when its key matches, else rendered and stored."""
-    from .render import render_passes
+    from .render import render_passes, write_exr
     key = reference_key(scene_path, settings)
     exr, meta = cache / f"{key[:24]}.exr", cache / f"{key[:24]}.json"
     if exr.is_file() and meta.is_file():
@@ -146,8 +144,7 @@ def reference(mi, scene, scene_path: Path, settings: dict, cache: Path, progress
     if not np.isfinite(img).all():
         raise ConvergeError("the stock reference has NaN/Inf pixels; nothing cached")
     info = {"key": key, "settings": settings, "render_s": secs, "scene": str(scene_path)}
-    with atomic.atomic_path(exr) as tmp:
-        mi.Bitmap(img).write(tmp)
+    write_exr(exr, img)
     atomic.write_text(meta, json.dumps(info, indent=1))  # written last: its presence means the EXR is whole
     return img, {**info, "path": str(exr), "cached": False}
 

@@ -5,15 +5,14 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from layerbvh import MISS
 
-def ensure_variant(variant: str = "llvm_ad_rgb") -> None:
-    if mi.variant() is None:
-        mi.set_variant(variant)
+from .render import use_variant
 
 
 def scene_from_mesh(vertices: np.ndarray, faces: np.ndarray, robust: bool = False):
     """A Mitsuba scene holding one mesh with exactly these triangles (face i = primitive i)."""
-    ensure_variant()
+    use_variant()
     v = np.ascontiguousarray(vertices, np.float32)
     f = np.ascontiguousarray(faces, np.uint32)
     mesh = mi.Mesh("mesh", vertex_count=len(v), face_count=len(f),
@@ -37,13 +36,13 @@ def rays(o: np.ndarray, d: np.ndarray, tmax=None):
 
 
 def intersect(scene, o: np.ndarray, d: np.ndarray, tmax=None):
-    """Embree closest hits as numpy: (t with inf for misses, prim with 0xFFFFFFFF for misses)."""
+    """Embree closest hits as numpy: (t with inf for misses, prim with MISS for misses)."""
     if len(o) == 0:  # Dr.Jit cannot run a query on empty arrays
         return np.zeros(0, np.float32), np.zeros(0, np.uint32)
     pi = scene.ray_intersect_preliminary(rays(o, d, tmax))
     valid = pi.is_valid()
     t = dr.select(valid, pi.t, dr.inf)
-    prim = dr.select(valid, pi.prim_index, mi.UInt32(0xFFFFFFFF))
+    prim = dr.select(valid, pi.prim_index, mi.UInt32(MISS))
     dr.eval(t, prim)
     return t.numpy(), prim.numpy()
 
@@ -62,9 +61,6 @@ def exact_t(v: np.ndarray, f: np.ndarray, prim: np.ndarray, o: np.ndarray, d: np
     pv = np.cross(d.astype(np.float64), e2)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.einsum("ij,ij->i", e2, np.cross(tv, e1)) / np.einsum("ij,ij->i", e1, pv)
-
-
-MISS = 0xFFFFFFFF
 
 
 def disagreements(v: np.ndarray, f: np.ndarray, o: np.ndarray, d: np.ndarray, prim_a: np.ndarray,
@@ -93,7 +89,7 @@ def exact_hit(v: np.ndarray, f: np.ndarray, prim: np.ndarray, o: np.ndarray, d: 
     """Does each ray really hit triangle `prim`, for the exact float32 inputs? Float64
     Moeller-Trumbore: (status, t) with status 1 (hit), 0 (miss) or -1 (undecidable: within `eps`
     of an edge in barycentric terms, the ray lies in the triangle's plane, or starts on the
-    triangle). Misses (prim = 0xFFFFFFFF) get status 0 and t = inf."""
+    triangle). Misses (prim = MISS) get status 0 and t = inf."""
     status = np.zeros(len(prim), np.int8)
     t = np.full(len(prim), np.inf)
     has = prim != MISS

@@ -1,4 +1,4 @@
-"""Loading a scene, reading its path settings, rendering in passes: what the CLI, converge, the tests and the tools share."""
+"""Choosing the variant, loading a scene, reading its path settings, rendering in passes, writing EXR: what the CLI, converge, the tests and the tools share."""
 from __future__ import annotations
 
 import math
@@ -7,11 +7,43 @@ import time
 
 import numpy as np
 
+from .atomic import atomic_path
+
+DEFAULT_VARIANT = "llvm_ad_rgb"  # Embree on the CPU, the same threads as our LLVM backend
 SPP_PER_PASS = 64  # a progress bar step; one pass (the exact seed) whenever spp <= this
 
 
-class CliError(Exception):
-    """An error reported to the user as one line."""
+class UserError(Exception):
+    """Bad input (a scene, an option, a variant), reported to the user as one line."""
+
+
+def use_variant(variant: str | None = None):
+    """Mitsuba with `variant` active (default: the active one, else DEFAULT_VARIANT), and the
+    `layerbvh` integrator registered for it."""
+    import mitsuba as mi
+    want = variant or mi.variant() or DEFAULT_VARIANT
+    if mi.variant() != want:
+        try:
+            mi.set_variant(want)
+        except Exception:
+            raise UserError(f"Mitsuba variant {want!r} is not available (choose one of "
+                            f"{', '.join(mi.variants())})") from None
+    import layerbvh_mitsuba  # noqa: F401  (registers the integrator, also for later variants)
+    return mi
+
+
+def pass_seed(seed: int, k: int, passes: int) -> int:
+    """Seed of pass k of `passes`: the user's seed itself when there is one pass, else one far
+    from any other seed's passes (7919 is prime, so seeds s and s' never share a pass seed for
+    k < 7919)."""
+    return seed if passes == 1 else seed * 7919 + k
+
+
+def write_exr(path, img: np.ndarray) -> None:
+    """Write a linear float32 image as EXR, whole or not at all (temporary sibling, then rename)."""
+    mi = use_variant()
+    with atomic_path(path) as tmp:
+        mi.Bitmap(np.ascontiguousarray(img, dtype=np.float32)).write(tmp)
 
 
 def load_scene(mi, path: str, res=None, **params):
@@ -20,9 +52,9 @@ def load_scene(mi, path: str, res=None, **params):
     try:
         scene = mi.load_file(str(path), **params)
     except Exception as e:  # Mitsuba raises RuntimeError with a multi-line message
-        raise CliError(f"cannot load scene {path}: {str(e).strip().splitlines()[-1]}") from None
+        raise UserError(f"cannot load scene {path}: {str(e).strip().splitlines()[-1]}") from None
     if not scene.sensors():
-        raise CliError(f"scene {path} has no sensor")
+        raise UserError(f"scene {path} has no sensor")
     if res is not None:
         params = mi.traverse(scene.sensors()[0])
         params["film.size"] = list(res)
@@ -70,7 +102,7 @@ def render_passes(mi, scene, integrator, spp: int, seed: int, label: str, progre
     with tqdm(total=spp, desc=label, unit="spp", disable=not progress, leave=False, file=sys.stderr) as bar:
         for k in range(passes):
             n = min(SPP_PER_PASS, spp - done) if passes > 1 else spp
-            img = mi.render(scene, integrator=integrator, spp=n, seed=seed if passes == 1 else seed * 7919 + k)
+            img = mi.render(scene, integrator=integrator, spp=n, seed=pass_seed(seed, k, passes))
             dr.eval(img)
             part = np.array(img, np.float32) * n
             acc = part if acc is None else acc + part

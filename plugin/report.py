@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from . import metrics
+from .render import write_exr
 
 # diff.png shows |ours - stock| * DIFF_SCALE per channel, tone mapped like the renders:
 # a linear difference of 0.1 or more is full white, and the hue tells which channel is off.
@@ -22,20 +23,6 @@ _LIST_PREVIEW = 8
 
 _IMAGES = (("stock.png", "stock (reference)"), ("ours.png", "ours"),
            ("flip.png", "ꟻLIP error (magma)"), ("diff.png", f"|ours − stock| × {DIFF_SCALE:g}"))
-
-
-def _ensure_variant() -> None:
-    import mitsuba as mi
-
-    if mi.variant() is None:
-        mi.set_variant("llvm_ad_rgb")
-
-
-def _write_exr(path: Path, img: np.ndarray) -> None:
-    import mitsuba as mi
-
-    _ensure_variant()
-    mi.Bitmap(np.ascontiguousarray(img, dtype=np.float32)).write(str(path))
 
 
 def to_png_bytes(rgb01: np.ndarray) -> bytes:
@@ -147,8 +134,8 @@ def _write_bytes(path: Path, data: bytes) -> None:
 
 
 def _write_all(tmp: Path, stock: np.ndarray, ours: np.ndarray, rep: dict, flip_map: np.ndarray) -> None:
-    _write_exr(tmp / "stock.exr", stock)
-    _write_exr(tmp / "ours.exr", ours)
+    write_exr(tmp / "stock.exr", stock)
+    write_exr(tmp / "ours.exr", ours)
     _write_bytes(tmp / "stock.png", to_png_bytes(metrics.tonemap_srgb(stock)))
     _write_bytes(tmp / "ours.png", to_png_bytes(metrics.tonemap_srgb(ours)))
     _write_bytes(tmp / "flip.png", to_png_bytes(_magma(flip_map)))

@@ -22,11 +22,8 @@ class SameSeedResult:
 
 
 def _mi():
-    import mitsuba as mi
-    if mi.variant() is None:
-        mi.set_variant("llvm_ad_rgb")
-    import layerbvh_mitsuba  # noqa: F401  (registers the integrator)
-    return mi
+    from .render import use_variant
+    return use_variant()
 
 
 def load(scene_path, res=None, **params):
@@ -65,11 +62,10 @@ def assert_matches_stock(scene_path, spp=16, res=(32, 32), seed=0, traversal="pe
     if not ok:
         where = ""
         if diff_dir is not None:
-            mi = _mi()
+            from .render import write_exr
             out = Path(diff_dir)
-            out.mkdir(parents=True, exist_ok=True)
             for name, img in (("stock", r.stock), ("ours", r.ours), ("diff", np.abs(r.stock - r.ours))):
-                mi.Bitmap(img).write(str(out / f"{Path(scene_path).stem}_{name}.exr"))
+                write_exr(out / f"{Path(scene_path).stem}_{name}.exr", img)
             where = f"; images saved in {out}"
         raise AssertionError(f"{scene_path}: layerbvh differs from stock path: {r.summary()} "
                              f"(need >= {100 * min_frac:.2f}% within {tol} and mean |diff| <= "

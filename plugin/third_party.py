@@ -157,10 +157,10 @@ def run_worker(args) -> dict:
     text = _xml_text(scene_path)
     import numpy as np
     import mitsuba as mi
-    mi.set_variant(args.variant)
-    import layerbvh_mitsuba  # noqa: F401  (registers the integrator)
+    from layerbvh_mitsuba.render import use_variant
+    mi = use_variant(args.variant)
     from layerbvh_mitsuba.adapter import UnsupportedShapeError
-    from layerbvh_mitsuba.render import CliError, load_scene, render_passes
+    from layerbvh_mitsuba.render import UserError, load_scene, render_passes
     from layerbvh_mitsuba.metrics import compare_images
 
     if "spectral" not in args.variant and (re.search(r'<spectrum[^>]*value\s*=\s*"[^"]*\d\s*:', text)
@@ -172,7 +172,7 @@ def run_worker(args) -> dict:
         t0 = time.perf_counter()
         scene = load_scene(mi, str(scene_path), tuple(args.res))
         rec["load_s"] = time.perf_counter() - t0
-    except CliError as e:
+    except UserError as e:
         rec["result"] = f"fails in stock Mitsuba: {str(e).split(': ', 1)[-1] if ': ' in str(e) else e}"
         return rec
     except Exception as e:

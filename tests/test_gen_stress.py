@@ -12,10 +12,11 @@ import pytest
 
 from layerbvh_mitsuba.bench import stress as gen_stress
 from layerbvh_mitsuba.bench.meshes import load_mesh
+from layerbvh_mitsuba.repo import ROOT
 
 mi.set_variant("llvm_ad_rgb")
 
-SCRIPT = Path(gen_stress.__file__)
+SCRIPT = ROOT / "scripts" / "gen_stress.py"  # the entry point users run
 N = 10_000
 
 

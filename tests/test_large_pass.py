@@ -68,8 +68,8 @@ def test_broadcast_inputs_in_batches_match_one_unbatched_call(bunny_bvhs, mode, 
         got = got.numpy() if dr.is_array_v(got) else got
         assert np.array_equal(got, getattr(ref, name)), f"{case}: {name} differs from the unbatched trace"
     # Any hit, with a tmax that ends before some hits: the same answer as unbatched, full width.
-    occ_ref = whole.occluded(np.broadcast_to(eye, d.shape), d, tmax, mode="per_ray")
-    occ = batched.occluded(o_in, d_in, t_in, mode=mode)
+    occ_ref = whole.occluded(np.broadcast_to(eye, d.shape), d, tmax, mode="per_ray").occluded
+    occ = batched.occluded(o_in, d_in, t_in, mode=mode).occluded
     occ = occ.numpy() if dr.is_array_v(occ) else occ
     assert occ.shape == (N_RAYS,) and np.array_equal(occ, occ_ref), f"{case}: occlusion differs"
 
@@ -77,10 +77,10 @@ def test_broadcast_inputs_in_batches_match_one_unbatched_call(bunny_bvhs, mode, 
 def test_an_input_of_another_width_is_refused_by_name(bunny_bvhs):
     v, _, batched = bunny_bvhs
     eye, d = _camera_like(v)
-    with pytest.raises(ValueError, match=r"tmax has 7 entries, the other ray inputs 10000"):
+    with pytest.raises(ValueError, match=r"tmax has 7 entries, origins\[0\] has 10000"):
         batched.trace(_columns(np.broadcast_to(eye, d.shape)), _columns(d), mi.Float(np.ones(7, np.float32)))
-    with pytest.raises(ValueError, match=r"origins\[1\] has 3 entries, the other ray inputs 10000"):
-        batched.occluded(mi.Point3f(mi.Float(0), mi.Float([0, 1, 2]), mi.Float(0)), _columns(d))
+    with pytest.raises(ValueError, match=r"origins\[1\] has 3 entries, directions\[0\] has 10000"):
+        batched.occluded(mi.Point3f(mi.Float(0), mi.Float([0, 1, 2]), mi.Float(0)), _columns(d)).occluded
     with pytest.raises(ValueError, match=r"directions must have shape \(N, 3\), got \(4, 2\)"):
         batched.trace(np.zeros((4, 3)), np.ones((4, 2)))
 

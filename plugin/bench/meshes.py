@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from layerbvh import check_mesh
+
 # -- procedural meshes ------------------------------------------------------------------------------
 
 
@@ -174,11 +176,7 @@ def _checked(path, v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray
     if f.min() < 0 or f.max() >= len(v):
         bad = int(np.nonzero((f < 0).any(1) | (f >= len(v)).any(1))[0][0])
         raise ValueError(f"{path}: face {bad} uses vertex index {f[bad].tolist()} but there are {len(v)} vertices")
-    v = v.astype(np.float32)
-    if not np.isfinite(v).all():
-        bad = int(np.nonzero(~np.isfinite(v).all(1))[0][0])
-        raise ValueError(f"{path}: vertex {bad} = {v[bad].tolist()} is not finite")
-    return v, f.astype(np.int64)
+    return check_mesh(v, f, name=str(path))
 
 
 def _fan(polygons: list[np.ndarray], path, what: str) -> np.ndarray:

@@ -18,13 +18,13 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     import mitsuba as mi
-    mi.set_variant("llvm_ad_rgb")
-    import layerbvh_mitsuba  # noqa: F401
+    from layerbvh_mitsuba.render import use_variant
+    mi = use_variant()
     from layerbvh_mitsuba import record
-    from layerbvh_mitsuba.render import CliError, load_scene, path_props
+    from layerbvh_mitsuba.render import UserError, load_scene, path_props
     try:
         scene = load_scene(mi, args.scene, args.res)
-    except CliError as e:
+    except UserError as e:
         print(f"record_rays: error: {e}", file=sys.stderr)
         return 2
     integ = mi.load_dict({"type": "layerbvh", "traversal": "per_ray", **path_props(mi, scene)})

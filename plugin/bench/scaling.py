@@ -12,6 +12,7 @@ import numpy as np
 import mitsuba as mi
 
 import layerbvh
+from ..render import use_variant
 from . import meshes, stress as gen_stress, traversal as bt
 
 DEFAULT_SIZES = "10k,30k,100k,300k,1M,3M,5M"
@@ -48,7 +49,7 @@ def main(argv=None) -> int:
         heights = [int(h) for h in args.heights.split(",")]
     except ValueError:
         p.error("--sizes and --heights must be comma lists of numbers (sizes may end in k or M)")
-    mi.set_variant("llvm_ad_rgb")
+    use_variant()
     command = shlex.join(getattr(sys, "orig_argv", [sys.executable] + sys.argv))
     print(f"# Scaling benchmark\n\n`{command}`\n")
     doc = {"machine": bt.machine_info("llvm"), "versions": bt.versions(), "command": command,

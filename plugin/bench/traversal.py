@@ -19,6 +19,7 @@ import drjit as dr
 import mitsuba as mi
 
 import layerbvh
+from ..render import use_variant
 from .. import atomic, embree, record
 from ..repo import ROOT, SCENES
 from . import meshes
@@ -73,7 +74,7 @@ def parse_args(argv=None):
                    help="ray recording (.npz from scripts/record_rays.py) to bench: its triangles and every "
                         "recorded ray kind (repeatable)")
     p.add_argument("--kinds", help="comma list of recorded ray kinds to bench (default: all in the file)")
-    p.add_argument("--batch-rays", type=int, default=layerbvh.bvh.BATCH_RAYS,
+    p.add_argument("--batch-rays", type=int, default=layerbvh.BATCH_RAYS,
                    help="rays per trace batch of the layerbvh modes (default %(default)s; bounds work memory)")
     p.add_argument("--json", metavar="OUT", help="write every figure to this JSON file")
     args = p.parse_args(argv)
@@ -152,8 +153,8 @@ def layer_config(bvh, mode: str, height: int, o_dev, d_dev, tmax_dev, any_hit: b
     def trace(stats):
         if any_hit:
             occ = bvh.occluded(o_dev, d_dev, tmax_dev, mode=mode, hint=hint, stats=stats)
-            dr.eval(occ)
-            return occ, bvh.last_occluded_stats
+            dr.eval(occ.occluded)
+            return occ.occluded, occ.stats
         h = bvh.trace(o_dev, d_dev, tmax_dev, mode=mode, hint=hint, stats=stats)
         dr.eval(h.t, h.prim, h.u, h.v)
         return h, h.stats
@@ -380,7 +381,7 @@ def recorded_ray_sets(rays: dict, args):
 def bench_mesh(name: str, v, f, ray_sets, args, source: str = "generated") -> list[dict]:
     scene, embree_build_s = embree_scene(v, f)
     bvhs = {h: layerbvh.build(v, f, treelet_height=h, backend=args.backend,
-                              batch_rays=getattr(args, "batch_rays", layerbvh.bvh.BATCH_RAYS)) for h in args.heights}
+                              batch_rays=getattr(args, "batch_rays", layerbvh.BATCH_RAYS)) for h in args.heights}
     rows = []
     for kind, o, d, tmax, any_hit in ray_sets:
         configs = make_configs(scene, embree_build_s, bvhs, o, d, tmax, any_hit, args.backend, kind)
@@ -397,7 +398,7 @@ def bench_mesh(name: str, v, f, ray_sets, args, source: str = "generated") -> li
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    mi.set_variant("llvm_ad_rgb")
+    use_variant()
     command = shlex.join(getattr(sys, "orig_argv", [sys.executable] + sys.argv))
     machine = machine_info(args.backend)
     print(f"# Traversal benchmark\n\n`{command}`\n")
