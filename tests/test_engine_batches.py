@@ -47,3 +47,24 @@ def test_auto_returns_the_same_hits_and_records_its_choice(procedural):
     assert len(bvh.auto_choices) == 1, "decided once per kind and size class"
     small = bvh.trace(o[:1000], d[:1000], mode="auto")
     assert small.stats.mode == "auto:per_ray" and len(bvh.auto_choices) == 1, "small batches never calibrate"
+
+
+@pytest.mark.parametrize("mode", layerbvh.MODES)
+def test_active_mask_makes_misses_and_leaves_the_rest_alone(procedural, mode):
+    v, f = procedural
+    o, d = meshes.incoherent_rays(v, 5_000, seed=12)
+    bvh = layerbvh.build(v, f, treelet_height=3, backend="llvm", batch_rays=2_000)
+    active = np.random.default_rng(1).random(len(o)) < 0.6
+    ref = bvh.trace(o, d, mode="per_ray")
+    h = bvh.trace(o, d, mode=mode, active=active)
+    assert np.array_equal(h.prim[active], ref.prim[active]) and np.array_equal(h.t[active], ref.t[active])
+    assert np.all(h.prim[~active] == layerbvh.MISS) and np.all(np.isinf(h.t[~active]))
+    assert (ref.prim[~active] != layerbvh.MISS).sum() > 100, "masked rays would have hit"
+    # The work counts only the active rays.
+    assert h.stats.inner_nodes < ref.stats.inner_nodes * 0.75
+    tmax = np.where(np.isfinite(ref.t), ref.t * 2, 10.0).astype(np.float32)
+    occ = bvh.occluded(o, d, tmax, mode=mode, active=active)
+    assert isinstance(occ, layerbvh.Occlusion) and occ.stats.rays == len(o) and occ.stats.batches == 3
+    assert np.array_equal(occ.occluded, active & (ref.prim != layerbvh.MISS))
+    with pytest.raises(ValueError, match=r"active has 3 entries, origins has 5000"):
+        bvh.trace(o, d, mode=mode, active=np.ones(3, bool))

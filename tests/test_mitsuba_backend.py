@@ -90,3 +90,24 @@ def test_hide_emitters_matches_stock(name):
                            spp=8, seed=0))
     d = np.abs(a - b).max(-1)
     assert np.mean(d <= 1e-3) >= 0.999, f"max |diff| {d.max()}"
+
+
+def test_auto_decides_bounce_rays_apart_from_camera_rays():
+    """auto keys its decision by the kind of batch: bounce rays must not reuse the camera rays'."""
+    scene = testing.load(SCENES / "cbox.xml", (256, 256), max_depth=3)  # 65,536 rays: auto calibrates
+    integ = mi.load_dict({"type": "layerbvh", "traversal": "auto", "max_depth": 3})
+    mi.render(scene, integrator=integ, spp=1, seed=0)
+    kinds = {key.split("/")[1] for key in integ.last_stats["auto_choices"]}
+    assert {"camera", "bounce", "shadow"} <= kinds, integ.last_stats["auto_choices"]
+
+
+def test_registered_for_every_variant_set_later():
+    """No variant is set by importing the package; the integrator follows variant changes."""
+    import subprocess
+    import sys
+    code = ("import mitsuba as mi, layerbvh_mitsuba; assert mi.variant() is None; "
+            "mi.set_variant('llvm_ad_mono'); i = mi.load_dict({'type': 'layerbvh'}); "
+            "mi.set_variant('llvm_ad_rgb'); j = mi.load_dict({'type': 'layerbvh'}); "
+            "print(type(i).__name__, type(j).__name__)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.split() == ["LayerBVHIntegrator", "LayerBVHIntegrator"], r.stderr
