@@ -13,7 +13,7 @@ from .layout import LayerLayout, check_layout, load_builder_kernels, to_layer_la
 from .sah import BinaryBVH, build_binned_sah, triangle_bounds
 from .state import MISS, Results
 from .stats import BVHStats, TraceStats
-from .wavefront import MODES, TAIL_RAYS, trace as _trace
+from .wavefront import MODES, TAIL_RAYS, trace as _trace, trace_inline
 
 # Rays traced per batch. The layer modes' work memory is about batch x (tree depth x 8 B of
 # entry stack + 2 x 36 B of ray state + 32 B ray record + 40 B in/out); 1M rays, depth 40: ~500 MB.
@@ -150,6 +150,23 @@ class LayerBVH:
         batch, res, st = self._run(origins, directions, tmax, active, mode, True, stats, hint)
         occ = res.prim != MISS if st.rays else dr.zeros(self.m.Bool, 0)
         return Occlusion(occluded=batch.to_caller(occ), stats=st)
+
+    # -- tracing inside the caller's kernel ------------------------------------------------------
+    def trace_inline(self, origins, directions, tmax, active, any_hit: bool = False) -> Hits:
+        """per_ray closest (or any) hits with no host synchronisation, so the call can sit inside
+        the caller's symbolic loop and compile into the caller's kernel (a renderer's bounce
+        loop as one megakernel). Inputs are Dr.Jit arrays of this BVH's backend, one ray per
+        lane; nothing is evaluated, batched or counted (hits.stats is None); inactive lanes miss."""
+        m = self.m
+        o, d = [m.Float(c) for c in origins], [m.Float(c) for c in directions]
+        tmax, active = m.Float(tmax), m.Bool(active)
+        n = max(dr.width(x) for x in (*o, *d, tmax, active))
+        if self.device is None:
+            return Hits(t=dr.full(m.Float, dr.inf, n), prim=dr.full(m.UInt32, MISS, n), u=dr.zeros(m.Float, n),
+                        v=dr.zeros(m.Float, n), stats=None)
+        out = trace_inline(m, self.device, o, d, tmax, active, any_hit)
+        hit = out.prim != MISS
+        return Hits(t=dr.select(hit, out.t, dr.inf), prim=out.prim, u=out.u, v=out.v, stats=None)
 
 
 def build(vertices, faces, treelet_height: int = 4, leaf_size: int = 4, backend: str | None = None,

@@ -46,6 +46,17 @@ class RayRecords:
         return x[:3], x[3:]
 
 
+class DirectRays:
+    """Origins and directions held as they are, one per lane (a trace inside a caller's kernel,
+    where every lane is its own ray and no slot indirection exists)."""
+
+    def __init__(self, o, d):
+        self.o, self.d = list(o), list(d)
+
+    def load(self, slot):
+        return self.o, self.d
+
+
 @dataclass
 class RayState:
     """What a ray carries from one wavefront step to the next (one array per field; origins and

@@ -20,7 +20,7 @@ def treelet_of(m, lay: DeviceLayout, link, active):
 
 @dr.syntax
 def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool, any_hit: bool,
-         count_work: bool = True):
+         count_work: bool = True, active=None):
     """Advance every ray of `s`, nearest child first, until it finishes or (when `bounded`)
     is about to continue in another treelet than `s.treelet`. `rays` (state.SlotRays or
     state.RayRecords) gives each slot's origin and direction.
@@ -28,8 +28,9 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
     With `count_work` False the work counters are left untouched (no statistics work).
     Entries pushed during this call live in a local stack of `cap` entries; entries pushed by
     earlier steps are read (never written) from the global `stack` = (links, t, capacity),
-    so the kernel has no read-after-write on global memory. Returns the new state, whether
-    each ray finished, the treelet it continues in, and its local entries for write-back.
+    so the kernel has no read-after-write on global memory. Rays where `active` (default: all)
+    is False do not move. Returns the new state, whether each ray finished, the treelet it
+    continues in, and its local entries for write-back.
     """
     ray = Ray(m, *rays.load(s.slot))
     # One spare slot: the unconditional write above the top must stay in bounds when full.
@@ -46,7 +47,7 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
     done = m.Bool(False)
     next_treelet = m.UInt32(s.treelet)
     base = s.slot * stack[2] if stack is not None else m.UInt32(0)
-    active = dr.full(m.Bool, True, dr.width(s.link))
+    active = dr.full(m.Bool, True, dr.width(s.link)) if active is None else m.Bool(active)
 
     while active:
         if count_work:

@@ -7,7 +7,7 @@ import drjit as dr
 
 from .inputs import RayBatch
 from .layout import DeviceLayout
-from .state import RayRecords, RayState, Results, SlotRays
+from .state import DirectRays, RayRecords, RayState, Results, SlotRays
 from .stats import TraceStats
 from .walk import walk
 
@@ -111,3 +111,13 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, mode: str, any_hit: bool, tail_
     # entry stacks, ray records, ray in/out arrays
     stats.work_bytes = peak + n * cap_global * ENTRY_BYTES + n * 4 * RayRecords.STRIDE + n * 4 * 10
     return res, stats
+
+
+def trace_inline(m, lay: DeviceLayout, o, d, tmax, active, any_hit: bool) -> RayState:
+    """per_ray traversal of the caller's rays, one per lane, with no host synchronisation, so it
+    can run inside the caller's symbolic loop (a bounce loop compiled into one kernel). Rays
+    where `active` is False keep prim = MISS. Returns the final state (t, u, v, prim)."""
+    n = max(dr.width(x) for x in (*o, *d, tmax, active))
+    s = RayState.start(m, dr.zeros(m.Float, n) + m.Float(tmax), count_work=False)  # one tmax per lane
+    out, _, _, _ = walk(m, lay, DirectRays(o, d), s, None, max(lay.depth, 1), False, any_hit, False, active=active)
+    return out

@@ -108,6 +108,9 @@ class SceneTracer:
         self.trace_stats.append(out.stats)
         return out
 
+    # -- between kernels: traced in batches (any mode), statistics and recording possible ----------
+    symbolic = False
+
     def intersect(self, ray: mi.Ray3f, active, hint: str = "camera", kind=None) -> mi.PreliminaryIntersection3f:
         """Closest hit over meshes (our traversal) and analytic shapes (Mitsuba's per-shape test).
         `hint` ('camera' or 'bounce') names the kind of batch for auto's decision; `kind` (an
@@ -117,6 +120,32 @@ class SceneTracer:
             self.recorder.add(hint if kind is None else kind, ray, active)
         hits = self._query(lambda: self.bvh.trace(ray.o, ray.d, ray.maxt, mode=self.traversal, stats=self.count_work,
                                                   hint=hint, active=active))
+        return self._preliminary(ray, active, hits)
+
+    def occluded(self, ray: mi.Ray3f, active) -> mi.Bool:
+        """Any hit in (0, ray.maxt): our any-hit traversal, then the analytic shapes."""
+        active = mi.Bool(active)
+        if self.recorder is not None:
+            self.recorder.add("shadow", ray, active)
+        occ = self._query(lambda: self.bvh.occluded(ray.o, ray.d, ray.maxt, mode=self.traversal,
+                                                    stats=self.count_work, hint="shadow", active=active))
+        return self._or_analytic(ray, active, mi.Bool(occ.occluded))
+
+    # -- inside the caller's kernel: per_ray, no host synchronisation --------------------------------
+    def intersect_inline(self, ray: mi.Ray3f, active) -> mi.PreliminaryIntersection3f:
+        """As `intersect`, traced inline (usable in a symbolic loop)."""
+        active = mi.Bool(active)
+        return self._preliminary(ray, active, self.bvh.trace_inline(ray.o, ray.d, ray.maxt, active))
+
+    def occluded_inline(self, ray: mi.Ray3f, active) -> mi.Bool:
+        """As `occluded`, traced inline (usable in a symbolic loop)."""
+        active = mi.Bool(active)
+        hits = self.bvh.trace_inline(ray.o, ray.d, ray.maxt, active, any_hit=True)
+        return self._or_analytic(ray, active, mi.UInt32(hits.prim) != layerbvh.MISS)
+
+    # -- our hits as Mitsuba's ---------------------------------------------------------------------
+    def _preliminary(self, ray, active, hits) -> mi.PreliminaryIntersection3f:
+        """A Mitsuba PreliminaryIntersection3f from our closest hits, merged with the analytic shapes'."""
         hit = active & (mi.UInt32(hits.prim) != layerbvh.MISS)
         pi = dr.zeros(mi.PreliminaryIntersection3f, dr.width(ray.o))
         pi.t = dr.select(hit, mi.Float(hits.t), dr.inf)
@@ -138,14 +167,39 @@ class SceneTracer:
             pi.valid = hit
         return pi
 
-    def occluded(self, ray: mi.Ray3f, active) -> mi.Bool:
-        """Any hit in (0, ray.maxt): our any-hit traversal, then the analytic shapes."""
-        active = mi.Bool(active)
-        if self.recorder is not None:
-            self.recorder.add("shadow", ray, active)
-        occ = mi.Bool(self._query(lambda: self.bvh.occluded(ray.o, ray.d, ray.maxt, mode=self.traversal,
-                                                            stats=self.count_work, hint="shadow", active=active)).occluded)
-        occ &= active
+    def _or_analytic(self, ray, active, occ) -> mi.Bool:
+        occ = occ & active
         for _, shape in self.geometry.analytic:
             occ |= active & shape.ray_test(ray, active)
         return occ
+
+
+class InlineQueries:
+    """The bounce loop's queries as per_ray traversal inside its kernel (the megakernel path)."""
+
+    symbolic = True
+
+    def __init__(self, tracer: SceneTracer):
+        self.tracer = tracer
+
+    def intersect(self, ray, active, hint: str = "camera", kind=None):
+        return self.tracer.intersect_inline(ray, active)
+
+    def occluded(self, ray, active):
+        return self.tracer.occluded_inline(ray, active)
+
+
+class EmbreeQueries:
+    """The bounce loop's queries answered by stock Mitsuba (Embree): the control that isolates
+    the traversal's cost (same loop, another traversal)."""
+
+    symbolic = True
+
+    def __init__(self, scene):
+        self.scene = scene
+
+    def intersect(self, ray, active, hint: str = "camera", kind=None):
+        return self.scene.ray_intersect_preliminary(ray, coherent=hint == "camera", active=active)
+
+    def occluded(self, ray, active):
+        return self.scene.ray_test(ray, active)

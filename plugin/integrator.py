@@ -10,9 +10,12 @@ import mitsuba as mi
 
 import layerbvh
 
-from .adapter import SceneTracer
+from .adapter import EmbreeQueries, InlineQueries, SceneTracer
 from .features import Features, plan_features
 from .record import bounce_kind
+
+EMBREE = "embree"  # the control: our loop, Mitsuba's (Embree's) queries
+TRAVERSALS = layerbvh.TRACE_MODES + (EMBREE,)
 
 
 def mis_weight(pdf_a, pdf_b):
@@ -30,36 +33,77 @@ def check_settings(max_depth: int, rr_depth: int, traversal: str, treelet_height
         raise ValueError(f"max_depth must be -1 (infinite) or >= 0, got {max_depth}")
     if rr_depth <= 0:
         raise ValueError(f"rr_depth must be > 0, got {rr_depth}")
-    if traversal not in layerbvh.TRACE_MODES:
-        raise ValueError(f"traversal must be one of {', '.join(layerbvh.TRACE_MODES)}; got {traversal!r}")
+    if traversal not in TRAVERSALS:
+        raise ValueError(f"traversal must be one of {', '.join(TRAVERSALS)}; got {traversal!r}")
     layerbvh.check_param("treelet_height", treelet_height)
     layerbvh.check_param("leaf_size", leaf_size)
     layerbvh.check_param("batch_rays", batch_rays)
 
 
+def loop(state: tuple, cond, body, symbolic: bool, label: str) -> tuple:
+    """`while cond(*state): state = body(*state)`, per lane. Symbolic: one Dr.Jit loop compiled
+    into the caller's kernel. Otherwise a Python loop whose body may synchronise with the host
+    (our sorted traversal does); its state (a sampler's included) is evaluated after every
+    iteration, so every iteration compiles to the same kernels. (Dr.Jit's own evaluated mode
+    applies the loop's mask to everything in the body, which arrays of another width, such as
+    the traversal's compacted rays, cannot take.)"""
+    if symbolic:
+        return dr.while_loop(state, cond, body, label=label, mode="symbolic")
+    while bool(dr.any(cond(*state), axis=None)):
+        state = body(*state)
+        for x in state:
+            if isinstance(x, mi.Sampler):
+                x.schedule_state()
+        dr.eval(*(x for x in state if not isinstance(x, mi.Sampler)))
+    return state
+
+
 @dataclass
 class SceneState:
-    """What the integrator keeps per scene: its traversal (BVH built once) and feature plan."""
+    """What the integrator keeps per scene: its traversal (BVH built once; None for the embree
+    control) and its feature plan."""
 
     scene: object
-    tracer: SceneTracer
+    tracer: SceneTracer | None
     features: Features
+
+
+@dataclass
+class PathState:
+    """What a path carries from one vertex to the next: the bounce loop's state."""
+
+    ray: mi.Ray3f                      # the ray that found `pi`
+    pi: mi.PreliminaryIntersection3f   # the vertex to shade next
+    active: mi.Bool
+    depth: mi.UInt32
+    L: mi.Spectrum                     # radiance so far
+    beta: mi.Spectrum                  # throughput
+    eta: mi.Float                      # relative index of refraction so far (Russian roulette)
+    valid: mi.Bool                     # the sample counts (stock path's valid_ray)
+    prev_si: mi.SurfaceInteraction3f   # for the MIS weight of emission found by the BSDF sample
+    prev_bsdf_pdf: mi.Float
+    prev_bsdf_delta: mi.Bool
 
 
 class LayerBVHPathTracer:
     r"""Unidirectional path tracer (same estimator as stock ``path``) tracing with layerbvh.
 
-    Algorithm, per bounce (the primal path of ``prb``/stock ``path``): compute the surface
-    interaction of the current hit, add emission with the power-heuristic MIS weight, sample an
-    emitter (``next_2d``, always drawn) and test its visibility with our any-hit traversal, sample
-    the BSDF (``next_1d``, ``next_2d``), apply Russian roulette (``next_1d``, always drawn), and
-    find the next hit with our closest-hit traversal. Sampler use is in exactly this order, so a
-    same-seed render matches stock ``path`` up to floating-point noise.
+    Algorithm, per vertex (the primal path of ``prb``/stock ``path``; ``_vertex``): compute the
+    surface interaction of the current hit, add emission with the power-heuristic MIS weight,
+    sample an emitter (``next_2d``, always drawn) and test its visibility with our any-hit
+    traversal, sample the BSDF (``next_1d``, ``next_2d``), apply Russian roulette (``next_1d``,
+    always drawn), and find the next hit with our closest-hit traversal. Sampler use is in
+    exactly this order, so a same-seed render matches stock ``path`` up to floating-point noise.
 
-    Our traversal sorts and compacts rays between wavefront steps, which needs host
-    synchronisation, so the bounce loop runs in evaluated mode (a Python loop, one step per
-    bounce) instead of a symbolic loop. Everything a bounce carries to the next (the path state
-    and the sampler's state) is evaluated at its end, so every bounce launches the same kernels.
+    The bounce loop runs in one of two modes (``dr.while_loop``):
+
+    - *megakernel* (symbolic loop): ``per_ray`` and ``embree`` traversal, no statistics, no ray
+      recording. The traversal is traced inline (``SceneTracer.intersect_inline``), so a render
+      is one kernel, as stock ``path`` is.
+    - *wavefront* (a Python loop, see ``loop``): the layer modes (their sort needs the host
+      between wavefront steps), ``auto``, statistics and recording. Queries trace only the paths
+      still alive (the traversal compacts its active rays), and every vertex launches the same
+      kernels.
 
     The scene is inspected once (``features.plan_features``) and only what it needs runs: no
     emitter sampling or shadow rays when it has no emitter, no emission lookups at hits when
@@ -68,10 +112,11 @@ class LayerBVHPathTracer:
     in the same order, so leaving a feature out never changes the image.
 
     Properties: ``max_depth`` (default -1, infinite), ``rr_depth`` (5), ``hide_emitters`` (false)
-    as in ``path``; ``traversal`` (``auto`` | ``per_ray`` | ``layer_sorted`` | ``layer_unsorted``,
-    default ``auto``: per ray batch, the faster of per_ray and layer_sorted, timed once per kind
-    of batch), ``treelet_height`` (4), ``leaf_size`` (4), ``stats`` (false: collect
-    traversal work counts), ``adaptive`` (true: leave out what the scene does not need),
+    as in ``path``; ``traversal`` (``auto`` | ``per_ray`` | ``layer_sorted`` | ``layer_unsorted``
+    | ``embree``, default ``auto``: per ray batch, the faster of per_ray and layer_sorted, timed
+    once per kind of batch; ``embree``: this loop with Mitsuba's own queries, the control that
+    isolates the traversal), ``treelet_height`` (4), ``leaf_size`` (4), ``stats`` (false:
+    collect traversal work counts), ``adaptive`` (true: leave out what the scene does not need),
     ``batch_rays`` (2^20: rays traced per batch; bounds the traversal's work memory).
 
     ``integrator_class`` makes the subclass of the active variant's ``mi.SamplingIntegrator``
@@ -98,38 +143,54 @@ class LayerBVHPathTracer:
         except ValueError as e:
             raise ValueError(f"layerbvh integrator: {e}") from None
         self._state: SceneState | None = None
-        self._bounces = 0
+        self._vertices = 0  # loop iterations of the last render (wavefront mode)
         self.last_stats = {}
 
     # -- the BVH and the feature plan, made once per scene ---------------------------------------
     def scene_state(self, scene) -> SceneState:
         if self._state is None or self._state.scene is not scene:
-            tracer = SceneTracer(scene, self.traversal, self.treelet_height, self.leaf_size, count_work=self.stats,
-                                 batch_rays=self.batch_rays)
-            features = plan_features(scene, len(tracer.geometry.analytic), tracer.bvh.stats.treelets,
-                                     self.traversal, self.stats, self.adaptive)
+            if self.traversal == EMBREE:
+                tracer, treelets = None, 1
+                analytic = sum(not s.is_mesh() for s in scene.shapes())
+            else:
+                tracer = SceneTracer(scene, self.traversal, self.treelet_height, self.leaf_size,
+                                     count_work=self.stats, batch_rays=self.batch_rays)
+                treelets, analytic = tracer.bvh.stats.treelets, len(tracer.geometry.analytic)
+            features = plan_features(scene, analytic, treelets, self.traversal, self.stats, self.adaptive)
             self._state = SceneState(scene, tracer, features)
         return self._state
 
-    def tracer(self, scene) -> SceneTracer:
-        """The scene's traversal: builds the BVH (and refuses unsupported shapes) on first use."""
+    def tracer(self, scene) -> SceneTracer | None:
+        """The scene's traversal: builds the BVH (and refuses unsupported shapes) on first use;
+        None for the embree control."""
         return self.scene_state(scene).tracer
+
+    def megakernel(self, tracer: SceneTracer | None) -> bool:
+        """Whether the bounce loop compiles into one kernel (see the class docstring)."""
+        if self.traversal == EMBREE:
+            return True
+        return self.traversal == "per_ray" and not self.stats and tracer.recorder is None
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         state = self.scene_state(scene)
         tracer = state.tracer
-        tracer.reset_counters()
-        self._bounces = 0
+        if tracer is not None:
+            tracer.reset_counters()
+        self._vertices = 0
         t0 = time.perf_counter()
         img = self._base.render(self, scene, sensor, seed, spp, develop, evaluate)
         dr.eval(img)
         total = time.perf_counter() - t0
-        steps = tracer.trace_stats
+        steps = tracer.trace_stats if tracer is not None else []
+        megakernel = self.megakernel(tracer)
+        trace_s = None if megakernel else tracer.trace_s
         self.last_stats = {
-            "build_s": tracer.build_s, "render_s": total, "trace_s": tracer.trace_s,
-            "shading_s": max(total - tracer.trace_s, 0.0), "queries": len(steps),
+            "build_s": tracer.build_s if tracer is not None else 0.0, "render_s": total, "trace_s": trace_s,
+            "shading_s": None if megakernel else max(total - trace_s, 0.0), "queries": len(steps),
+            "loop": "megakernel" if megakernel else "wavefront",
             "traversal": self.traversal, "treelet_height": self.treelet_height,
-            "bvh": {k: v for k, v in vars(tracer.bvh.stats).items() if k != "treelet_node_counts"},
+            "bvh": {} if tracer is None else {k: v for k, v in vars(tracer.bvh.stats).items()
+                                              if k != "treelet_node_counts"},
             "rays": sum(s.rays for s in steps),
             "wavefront_steps": sum(s.steps for s in steps),
             "inner_nodes": sum(s.inner_nodes for s in steps),
@@ -138,9 +199,10 @@ class LayerBVHPathTracer:
             "time_sort_s": sum(s.time_sort_s for s in steps),
             "time_traverse_s": sum(s.time_traverse_s for s in steps),
             "peak_work_bytes": max((s.work_bytes for s in steps), default=0),
-            "bounces": self._bounces,
+            "bounces": None if megakernel else self._vertices,
             "modes_used": dict(Counter(s.mode for s in steps)),
-            "auto_choices": {"/".join(map(str, k)): v for k, v in tracer.bvh.auto_choices.items()},
+            "auto_choices": {} if tracer is None else {"/".join(map(str, k)): v
+                                                       for k, v in tracer.bvh.auto_choices.items()},
             "features": state.features.as_dict(),
         }
         return img
@@ -148,104 +210,107 @@ class LayerBVHPathTracer:
     # -- one ray per sample: the path tracer ----------------------------------------------------
     def sample(self, scene, sampler, ray, medium=None, active=True):
         state = self.scene_state(scene)
-        tracer, use = state.tracer, state.features
-        bsdf_ctx = mi.BSDFContext()
-        ray = mi.Ray3f(ray)
+        tracer = state.tracer
+        megakernel = self.megakernel(tracer)
+        if self.traversal == EMBREE:
+            queries = EmbreeQueries(scene)
+        else:
+            queries = InlineQueries(tracer) if megakernel else tracer
         n = dr.width(ray.o)
         active = mi.Bool(active) & dr.full(mi.Bool, True, n)
-        depth = mi.UInt32(0)
-        L = mi.Spectrum(0)
-        beta = mi.Spectrum(1)
-        eta = mi.Float(1)
-        prev_si = dr.zeros(mi.SurfaceInteraction3f, n)
-        prev_bsdf_pdf = mi.Float(1.0)
-        prev_bsdf_delta = mi.Bool(True)
-        # As in stock `path`: a path that only sees the environment is a valid sample.
-        valid_ray = mi.Bool((not self.hide_emitters) and scene.environment() is not None)
         if self.max_depth == 0:
             return mi.Spectrum(0), mi.Bool(False), []
-
-        pi = tracer.intersect(ray, active, hint="camera")
+        ray = mi.Ray3f(ray)
+        pi = queries.intersect(ray, active, hint="camera")
         if self.hide_emitters:
-            pi = self._skip_area_emitters(tracer, ray, pi, active)
+            pi = self._skip_area_emitters(queries, ray, pi, active, megakernel)
+        path = PathState(
+            ray=ray, pi=pi, active=active, depth=dr.zeros(mi.UInt32, n), L=dr.zeros(mi.Spectrum, n),
+            beta=dr.full(mi.Spectrum, 1, n), eta=dr.full(mi.Float, 1, n),
+            # As in stock `path`: a path that only sees the environment is a valid sample.
+            valid=dr.full(mi.Bool, (not self.hide_emitters) and scene.environment() is not None, n),
+            prev_si=dr.zeros(mi.SurfaceInteraction3f, n), prev_bsdf_pdf=dr.full(mi.Float, 1, n),
+            prev_bsdf_delta=dr.full(mi.Bool, True, n))
+        sampler, path = loop(
+            (sampler, path), cond=lambda sampler, path: path.active,
+            body=lambda sampler, path: self._vertex(scene, sampler, state.features, queries, path, megakernel),
+            symbolic=megakernel, label="layerbvh path tracer")
+        return dr.select(path.valid, path.L, 0), path.valid, []
 
-        bounce = 0
-        while True:
-            si = pi.compute_surface_interaction(ray, mi.RayFlags.All, active)
-            bsdf = si.bsdf(ray)
-            active_next = mi.Bool(active)
-            if self.hide_emitters:
-                active_next &= ~((depth == 0) & ~si.is_valid())
+    def _vertex(self, scene, sampler, use: Features, queries, p: PathState, megakernel: bool):
+        """One loop iteration: shade the vertex `p.pi`, then find the next one."""
+        if not megakernel:
+            self._vertices += 1
+        bsdf_ctx = mi.BSDFContext()
+        active, depth, beta, eta = p.active, p.depth, p.beta, p.eta
+        si = p.pi.compute_surface_interaction(p.ray, mi.RayFlags.All, active)
+        bsdf = si.bsdf(p.ray)
+        active_next = mi.Bool(active)
+        if self.hide_emitters:
+            active_next &= ~((depth == 0) & ~si.is_valid())
 
-            # Emission reached by the previous BSDF sample, MIS-weighted against emitter sampling.
-            Le = mi.Spectrum(0)
-            if use.emitter_hits.on:
-                ds = mi.DirectionSample3f(scene, si=si, ref=prev_si)
-                mis = mis_weight(prev_bsdf_pdf, scene.pdf_emitter_direction(prev_si, ds, ~prev_bsdf_delta))
-                Le = beta * mis * ds.emitter.eval(si, active_next & (prev_bsdf_pdf > 0))
+        # Emission reached by the previous BSDF sample, MIS-weighted against emitter sampling.
+        Le = mi.Spectrum(0)
+        if use.emitter_hits.on:
+            ds = mi.DirectionSample3f(scene, si=si, ref=p.prev_si)
+            mis = mis_weight(p.prev_bsdf_pdf, scene.pdf_emitter_direction(p.prev_si, ds, ~p.prev_bsdf_delta))
+            Le = beta * mis * ds.emitter.eval(si, active_next & (p.prev_bsdf_pdf > 0))
 
-            if self.max_depth >= 0:
-                active_next &= depth + 1 < self.max_depth
-            active_next &= si.is_valid()
+        if self.max_depth >= 0:
+            active_next &= depth + 1 < self.max_depth
+        active_next &= si.is_valid()
 
-            # Emitter sampling; Mitsuba's own visibility test would trace with Embree, so it is
-            # switched off and the shadow ray goes through our any-hit traversal.
-            # The sample is drawn even when emitter sampling is left out: the sequence stays stock's.
-            em_sample = sampler.next_2d()
-            Lr_dir = mi.Spectrum(0)
-            if use.emitter_sampling.on:
-                active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-                ds, em_weight = scene.sample_emitter_direction(si, em_sample, False, active_em)
-                active_em &= ds.pdf != 0.0
-                shadow_ray = si.spawn_ray_to(ds.p)
-                active_em &= ~tracer.occluded(shadow_ray, active_em)
-                wo = si.to_local(ds.d)
-                bsdf_value_em, bsdf_pdf_em = bsdf.eval_pdf(bsdf_ctx, si, wo, active_em)
-                mis_em = dr.select(ds.delta, 1, mis_weight(ds.pdf, bsdf_pdf_em))
-                Lr_dir = dr.select(active_em, beta * mis_em * bsdf_value_em * em_weight, 0)
+        # Emitter sampling; Mitsuba's own visibility test would trace with Embree, so it is
+        # switched off and the shadow ray goes through our any-hit traversal.
+        # The sample is drawn even when emitter sampling is left out: the sequence stays stock's.
+        em_sample = sampler.next_2d()
+        Lr_dir = mi.Spectrum(0)
+        if use.emitter_sampling.on:
+            active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+            ds, em_weight = scene.sample_emitter_direction(si, em_sample, False, active_em)
+            active_em &= ds.pdf != 0.0
+            active_em &= ~queries.occluded(si.spawn_ray_to(ds.p), active_em)
+            wo = si.to_local(ds.d)
+            bsdf_value_em, bsdf_pdf_em = bsdf.eval_pdf(bsdf_ctx, si, wo, active_em)
+            mis_em = dr.select(ds.delta, 1, mis_weight(ds.pdf, bsdf_pdf_em))
+            Lr_dir = dr.select(active_em, beta * mis_em * bsdf_value_em * em_weight, 0)
 
-            bsdf_sample, bsdf_weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(), sampler.next_2d(), active_next)
-            kind = None if tracer.recorder is None else bounce_kind(mi, dr, bsdf_sample.sampled_type, depth)
+        bsdf_sample, bsdf_weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(), sampler.next_2d(), active_next)
 
-            L = dr.select(active, L + Le + Lr_dir, L)
-            ray = si.spawn_ray(si.to_world(bsdf_sample.wo))
-            eta = dr.select(active, eta * bsdf_sample.eta, eta)
-            beta = dr.select(active, beta * bsdf_weight, beta)
-            valid_ray |= active & si.is_valid() & ~mi.has_flag(bsdf_sample.sampled_type, mi.BSDFFlags.Null)
-            prev_si = si
-            prev_bsdf_pdf = bsdf_sample.pdf
-            prev_bsdf_delta = mi.has_flag(bsdf_sample.sampled_type, mi.BSDFFlags.Delta)
+        L = dr.select(active, p.L + Le + Lr_dir, p.L)
+        ray = si.spawn_ray(si.to_world(bsdf_sample.wo))
+        eta = dr.select(active, eta * bsdf_sample.eta, eta)
+        beta = dr.select(active, beta * bsdf_weight, beta)
+        valid = p.valid | (active & si.is_valid() & ~mi.has_flag(bsdf_sample.sampled_type, mi.BSDFFlags.Null))
 
-            # Stock `path` counts the vertex before deciding Russian roulette on the new depth.
-            depth = dr.select(active & si.is_valid(), depth + 1, depth)
-            beta_max = dr.max(mi.unpolarized_spectrum(beta))
-            rr_prob = dr.minimum(beta_max * dr.square(eta), 0.95)
-            rr_active = depth >= self.rr_depth
-            beta = dr.select(active & rr_active, beta * dr.rcp(rr_prob), beta)
-            rr_continue = sampler.next_1d() < rr_prob
-            active = active_next & (~rr_active | rr_continue) & (beta_max != 0)
-            # The next bounce starts from evaluated arrays only (the sampler's state included),
-            # so it compiles to the same kernels as this one.
-            sampler.schedule_state()
-            dr.eval(L, beta, eta, depth, active, valid_ray, ray, prev_si, prev_bsdf_pdf, prev_bsdf_delta)
-            bounce += 1
-            self._bounces = max(self._bounces, bounce)
-            if not dr.any(active)[0] if dr.is_array_v(dr.any(active)) else not dr.any(active):
-                break
-            pi = tracer.intersect(ray, active, hint="bounce", kind=kind)
+        # Stock `path` counts the vertex before deciding Russian roulette on the new depth.
+        depth = dr.select(active & si.is_valid(), depth + 1, depth)
+        beta_max = dr.max(mi.unpolarized_spectrum(beta))
+        rr_prob = dr.minimum(beta_max * dr.square(eta), 0.95)
+        rr_active = depth >= self.rr_depth
+        beta = dr.select(active & rr_active, beta * dr.rcp(rr_prob), beta)
+        rr_continue = sampler.next_1d() < rr_prob
+        active = active_next & (~rr_active | rr_continue) & (beta_max != 0)
 
-        return dr.select(valid_ray, L, 0), valid_ray, []
+        kind = None
+        if not megakernel and getattr(queries, "recorder", None) is not None:
+            kind = bounce_kind(mi, dr, bsdf_sample.sampled_type, p.depth)
+        pi = queries.intersect(ray, active, hint="bounce", kind=kind)
+        return sampler, PathState(ray=ray, pi=pi, active=active, depth=depth, L=L, beta=beta, eta=eta, valid=valid,
+                                  prev_si=si, prev_bsdf_pdf=bsdf_sample.pdf,
+                                  prev_bsdf_delta=mi.has_flag(bsdf_sample.sampled_type, mi.BSDFFlags.Delta))
 
-    def _skip_area_emitters(self, tracer, ray, pi, active):
+    def _skip_area_emitters(self, queries, ray, pi, active, megakernel: bool):
         """hide_emitters: a camera ray that hits an area emitter continues behind it (as in prb)."""
-        for _ in range(16):
-            hit_em = active & pi.is_valid() & (pi.shape.emitter() != None)  # noqa: E711
-            if not dr.any(hit_em)[0] if dr.is_array_v(dr.any(hit_em)) else not dr.any(hit_em):
-                break
+        def hits_emitter(ray, pi):
+            return active & pi.is_valid() & (pi.shape.emitter() != None)  # noqa: E711
+
+        def step(ray, pi):
+            hit_em = hits_emitter(ray, pi)
             si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, hit_em)
             ray = mi.Ray3f(dr.select(hit_em, si.spawn_ray(ray.d).o, ray.o), ray.d)
-            pi2 = tracer.intersect(ray, hit_em, hint="camera")
-            pi = dr.select(hit_em, pi2, pi)
+            return ray, dr.select(hit_em, queries.intersect(ray, hit_em, hint="camera"), pi)
+        _, pi = loop((ray, pi), cond=hits_emitter, body=step, symbolic=megakernel, label="layerbvh hide_emitters")
         return pi
 
     def aov_names(self):
