@@ -1,5 +1,5 @@
 """layerbvh: Layer BVH build, layout and exact sorted wavefront traversal on Dr.Jit."""
-from .auto import AUTO
+from .auto import AUTO, AutoPolicy
 from .inputs import PARAM_RANGES, check_mesh, check_param
 from .bvh import BATCH_RAYS, TRACE_MODES, Hits, LayerBVH, Occlusion, build
 from .layout import LayerLayout, check_layout
@@ -7,6 +7,6 @@ from .state import MISS
 from .stats import BVHStats, TraceStats
 from .wavefront import MODES
 
-__all__ = ["AUTO", "BATCH_RAYS", "TRACE_MODES", "build", "LayerBVH", "Hits", "Occlusion", "BVHStats", "TraceStats",
+__all__ = ["AUTO", "AutoPolicy", "BATCH_RAYS", "TRACE_MODES", "build", "LayerBVH", "Hits", "Occlusion", "BVHStats", "TraceStats",
            "LayerLayout", "check_layout", "MODES", "MISS", "PARAM_RANGES", "check_mesh", "check_param"]
 __version__ = "0.1.0"

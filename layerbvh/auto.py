@@ -10,37 +10,92 @@ import numpy as np
 from .inputs import RayBatch
 
 AUTO = "auto"
-# Below this many rays a batch goes per_ray without asking (a few rays per treelet cannot repay
-# a sort and a launch per step); above it the first batch of each size class is timed both ways
-# on a whole batch (up to batch_rays of its rays: sorting pays off with the number of rays per
-# treelet, so a smaller sample would favour per_ray) and the faster mode is kept.
-AUTO_MIN_RAYS = 1 << 16
 AUTO_WARMUP_RAYS = 4096  # compiles both modes' kernels before anything is timed
 AUTO_ROUNDS = 3  # timed rounds, alternating which mode goes first; the median decides
 AUTO_MARGIN = 0.05  # layer_sorted must be this much faster: it also needs far more memory
+# What is decided without timing, per backend. On the CPU (BENCHMARKS.md: 2-core Zen 3, AVX2)
+# sorting lost on every camera and shadow ray set (0.5-0.84x per_ray) and won only on
+# incoherent batches of 1M rays; a few rays per treelet cannot repay a sort and a launch per
+# step. Nothing has been measured on a GPU yet, so there every kind from 2^16 rays is timed.
+RULES = {
+    "llvm": {"min_rays": 1 << 20, "per_ray_hints": ("camera", "shadow")},
+    "cuda": {"min_rays": 1 << 16, "per_ray_hints": ()},
+}
+
+
+def choice_key(any_hit: bool, hint: str, rays: int) -> str:
+    """The kind of batch a decision holds for: query, hint, size class (bit length of the count)."""
+    return f"{'any_hit' if any_hit else 'closest_hit'}/{hint}/{int(rays).bit_length()}"
 
 
 class AutoPolicy:
-    """The faster of per_ray and layer_sorted, measured once per kind of batch: (closest/any hit,
-    the caller's hint such as 'camera', size class = bit length of the ray count).
+    """The faster of per_ray and layer_sorted, decided once per kind of batch (`choice_key`).
 
-    Timing both on real rays captures what a rule cannot: scene size against the caches, ray
-    coherence, CPU or GPU. Hits do not depend on the choice (every mode is exact and breaks ties
-    by primitive id), only the time does. `choices` maps each kind to its decision."""
+    Kinds covered by the backend's RULES go per_ray without timing. Any other kind is timed on
+    its first batch (up to batch_rays of its rays: sorting pays off with the rays per treelet,
+    so a smaller sample would favour per_ray), both modes AUTO_ROUNDS times in alternating
+    order, and layer_sorted is kept only if its median time is AUTO_MARGIN below per_ray's.
+    Timing real rays captures what a rule cannot: scene size against the caches, ray coherence,
+    CPU or GPU. Hits never depend on the choice (every mode is exact and breaks ties by
+    primitive id), only the time does.
 
-    def __init__(self):
-        self.choices = {}  # (query, hint, size class) -> {"mode", "seconds", "sample_rays"}
+    `choices` maps each kind to {"mode", "reason", "seconds" (per mode, when timed),
+    "sample_rays"}; `calibration_s` is the time spent timing. `load` takes decisions kept
+    from an earlier run (the caller persists `choices`; the engine writes no files)."""
+
+    def __init__(self, backend: str = "llvm", min_rays: int | None = None, per_ray_hints=None):
+        rules = RULES[backend]
+        self.min_rays = rules["min_rays"] if min_rays is None else int(min_rays)
+        self.per_ray_hints = tuple(rules["per_ray_hints"] if per_ray_hints is None else per_ray_hints)
+        self.choices: dict[str, dict] = {}
+        self.calibration_s = 0.0
+
+    def load(self, choices: dict) -> None:
+        """Adopt timed decisions from an earlier run (same scene, BVH, device: the caller's key)."""
+        for key, c in choices.items():
+            if c.get("mode") in ("per_ray", "layer_sorted"):
+                self.choices.setdefault(key, {**c, "reason": f"kept from an earlier run: {c.get('reason', '')}"})
+
+    def rule(self, any_hit: bool, hint: str, rays: int, treelets: int) -> dict | None:
+        """The untimed decision for this kind of batch, or None when it must be timed."""
+        if treelets <= 1:
+            return {"mode": "per_ray", "reason": "the BVH is one treelet: nothing to sort"}
+        if hint in self.per_ray_hints:
+            return {"mode": "per_ray", "reason": f"{hint} rays: sorting never won on this backend's benchmark"}
+        if rays < self.min_rays:
+            return {"mode": "per_ray", "reason": f"{rays:,} rays per batch, below the {self.min_rays:,} where "
+                                                 f"sorting can pay off on this backend"}
+        return None
+
+    def known(self, any_hit: bool, hint: str, rays: int, treelets: int) -> str | None:
+        """The mode for this kind of batch if it is decided without tracing (a rule or an
+        earlier decision), else None."""
+        rule = self.rule(any_hit, hint, rays, treelets)
+        if rule is not None:
+            return rule["mode"]
+        c = self.choices.get(choice_key(any_hit, hint, rays))
+        return c["mode"] if c else None
+
+    def settle(self, any_hit: bool, hint: str, rays: int, treelets: int) -> str | None:
+        """As `known`, and a rule's decision is recorded in `choices` (with its reason)."""
+        key = choice_key(any_hit, hint, rays)
+        rule = self.rule(any_hit, hint, rays, treelets)
+        if rule is not None and key not in self.choices:
+            self.choices[key] = {**rule, "seconds": None, "sample_rays": 0}
+        return self.known(any_hit, hint, rays, treelets)
 
     def decide(self, trace: Callable[[RayBatch, str], object], batch: RayBatch, batch_rays: int, any_hit: bool,
                hint: str, treelets: int) -> str:
         """The mode for `batch`; `trace(sample, mode)` traces a sub-batch (its results evaluated)."""
         k = min(batch.n, batch_rays)  # what one traced batch holds
-        if k < AUTO_MIN_RAYS or treelets <= 1:
-            return "per_ray"
-        key = ("any_hit" if any_hit else "closest_hit", hint, k.bit_length())
+        key = choice_key(any_hit, hint, k)
         known = self.choices.get(key)
         if known is not None:
             return known["mode"]
+        rule = self.rule(any_hit, hint, k, treelets)
+        if rule is not None:
+            self.choices[key] = {**rule, "seconds": None, "sample_rays": 0}
+            return rule["mode"]
 
         def leading(count):  # the first rays: neighbours, as in the batch itself
             return batch.take(dr.arange(dr.uint32_array_t(type(batch.tmax)), count))
@@ -52,6 +107,7 @@ class AutoPolicy:
             dr.sync_thread()
             return time.perf_counter() - t0
 
+        t_start = time.perf_counter()
         warm, sample = leading(min(k, AUTO_WARMUP_RAYS)), leading(k)
         for mode in ("per_ray", "layer_sorted"):  # compiles the kernels; not counted
             timed(warm, mode)
@@ -60,6 +116,10 @@ class AutoPolicy:
             for mode in (("per_ray", "layer_sorted") if rep % 2 == 0 else ("layer_sorted", "per_ray")):
                 runs[mode].append(timed(sample, mode))
         seconds = {mode: float(np.median(t)) for mode, t in runs.items()}
-        choice = "layer_sorted" if seconds["layer_sorted"] < (1 - AUTO_MARGIN) * seconds["per_ray"] else "per_ray"
-        self.choices[key] = {"mode": choice, "seconds": seconds, "sample_rays": k}
+        faster = seconds["layer_sorted"] < (1 - AUTO_MARGIN) * seconds["per_ray"]
+        choice = "layer_sorted" if faster else "per_ray"
+        self.choices[key] = {"mode": choice, "seconds": seconds, "sample_rays": k,
+                             "reason": f"timed: layer_sorted {seconds['layer_sorted']:.3g} s, per_ray "
+                                       f"{seconds['per_ray']:.3g} s on {k:,} rays"}
+        self.calibration_s += time.perf_counter() - t_start
         return choice

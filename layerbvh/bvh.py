@@ -46,10 +46,11 @@ class LayerBVH:
     """A binned-SAH BVH over triangles, laid out as a Layer BVH (see layout.LayerLayout).
 
     `batch_rays` bounds how many rays one kernel pass holds (the work memory); `tail_rays`: when
-    this few rays are left in the layer modes, one per-ray kernel finishes them."""
+    this few rays are left in the layer modes, one per-ray kernel finishes them; `auto_policy`
+    decides mode="auto" (default: auto.AutoPolicy's rules for the backend)."""
 
     def __init__(self, vertices, faces, treelet_height=4, leaf_size=4, backend=None, batch_rays=BATCH_RAYS,
-                 tail_rays=TAIL_RAYS):
+                 tail_rays=TAIL_RAYS, auto_policy: AutoPolicy | None = None):
         treelet_height = check_param("treelet_height", treelet_height)
         self.batch_rays = check_param("batch_rays", batch_rays)
         self.tail_rays = check_param("tail_rays", tail_rays)
@@ -58,7 +59,7 @@ class LayerBVH:
         self.vertices, self.faces = v, f
         self.backend = backend or be.default_backend()
         self.m = be.module(self.backend)
-        self.auto = AutoPolicy()
+        self.auto = auto_policy or AutoPolicy(self.backend)
         kernel_load_s = load_builder_kernels() if len(f) else 0.0
         t0 = time.perf_counter()
         self.binary: BinaryBVH | None = build_binned_sah(*triangle_bounds(v, f), leaf_size) if len(f) else None
@@ -77,7 +78,7 @@ class LayerBVH:
 
     @property
     def auto_choices(self) -> dict:
-        """auto's decisions: (query, hint, size class) -> {"mode", "seconds", "sample_rays"}."""
+        """auto's decisions: auto.choice_key -> {"mode", "reason", "seconds", "sample_rays"}."""
         return self.auto.choices
 
     def check(self) -> None:
@@ -170,8 +171,8 @@ class LayerBVH:
 
 
 def build(vertices, faces, treelet_height: int = 4, leaf_size: int = 4, backend: str | None = None,
-          batch_rays: int = BATCH_RAYS, tail_rays: int = TAIL_RAYS) -> LayerBVH:
+          batch_rays: int = BATCH_RAYS, tail_rays: int = TAIL_RAYS, auto_policy: AutoPolicy | None = None) -> LayerBVH:
     """Build a Layer BVH over a triangle mesh: vertices (V, 3) float, faces (F, 3) int.
     `batch_rays` bounds how many rays one trace call processes at once (peak memory)."""
     return LayerBVH(vertices, faces, treelet_height=treelet_height, leaf_size=leaf_size, backend=backend,
-                    batch_rays=batch_rays, tail_rays=tail_rays)
+                    batch_rays=batch_rays, tail_rays=tail_rays, auto_policy=auto_policy)

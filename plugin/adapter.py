@@ -1,6 +1,9 @@
 """Scene adapter: a Mitsuba scene's mesh triangles in world space, its analytic shapes, and the map from our hits back to Mitsuba shapes."""
 from __future__ import annotations
 
+import hashlib
+import json
+import platform
 import time
 from dataclasses import dataclass, field
 
@@ -92,10 +95,29 @@ class SceneTracer:
                                   batch_rays=batch_rays)
         self.tri_shape = mi.UInt32(self.geometry.tri_shape)
         self.tri_local = mi.UInt32(self.geometry.tri_local)
-        self.build_s = time.perf_counter() - t0
+        # numba's one-time kernel load is not build time (bvh.stats.kernel_load_s reports it).
+        self.build_s = time.perf_counter() - t0 - self.bvh.stats.kernel_load_s
         self.trace_s = 0.0
         self.trace_stats = []
         self.recorder = None  # a record.RayRecorder to capture every traced ray by kind
+
+    def device_key(self) -> str:
+        """What `auto`'s decisions depend on besides the rays: the scene's triangles, the BVH's
+        parameters, the backend and the device. A SHA-256, so any change gives a new key."""
+        h = hashlib.sha256()
+        h.update(np.ascontiguousarray(self.geometry.vertices).tobytes())
+        h.update(np.ascontiguousarray(self.geometry.faces).tobytes())
+        st = self.bvh.stats
+        cpu = platform.processor() or platform.machine()
+        try:
+            with open("/proc/cpuinfo") as fh:
+                cpu = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), cpu)
+        except OSError:
+            pass
+        h.update(json.dumps({"treelet_height": st.treelet_height, "leaf_size": st.leaf_size,
+                             "batch_rays": self.bvh.batch_rays, "backend": self.bvh.backend, "cpu": cpu,
+                             "threads": dr.thread_count(), "layerbvh": layerbvh.__version__}).encode())
+        return h.hexdigest()
 
     def reset_counters(self):
         self.trace_s = 0.0

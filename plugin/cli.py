@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .render import UserError, load_scene, path_props, render_passes, scene_spp, use_variant, write_exr
+from .render import UserError, load_scene, path_props, render_passes, scene_spp, timed_render, use_variant, write_exr
 
 
 
@@ -20,7 +20,9 @@ def _parser() -> argparse.ArgumentParser:
         sp.add_argument("--spp", type=int, help="samples per pixel (default: the scene's)")
         sp.add_argument("--res", type=int, nargs=2, metavar=("W", "H"), help="film resolution (default: the scene's)")
         sp.add_argument("--seed", type=int, default=0)
-        sp.add_argument("--traversal", default="auto", help="auto | per_ray | layer_sorted | layer_unsorted (default auto)")
+        sp.add_argument("--traversal", default="auto",
+                        help="auto | per_ray | layer_sorted | layer_unsorted | embree (our loop, Mitsuba's queries: "
+                             "the control) (default auto)")
         sp.add_argument("--treelet-height", type=int, default=4)
         sp.add_argument("--leaf-size", type=int, default=4)
         sp.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb, cuda_ad_rgb)")
@@ -70,8 +72,8 @@ def _check_args(args):
         raise UserError(f"--{name.replace('_', '-')} {rule}") from None
 
 
-def _ours(mi, args, props, stats=False):
-    d = {"type": "layerbvh", "traversal": args.traversal, "treelet_height": args.treelet_height,
+def _ours(mi, args, props, stats=False, traversal=None):
+    d = {"type": "layerbvh", "traversal": traversal or args.traversal, "treelet_height": args.treelet_height,
          "leaf_size": args.leaf_size, "stats": stats}
     d.update({k: v for k, v in props.items()})
     return mi.load_dict(d)
@@ -89,37 +91,68 @@ def cmd_render(mi, args) -> int:
         raise UserError(f"render produced {int((~np.isfinite(img)).any(-1).sum())} NaN/Inf pixels; nothing written")
     write_exr(args.output, img)
     st = integ.last_stats
+    trace = f", trace {st['trace_s']:.2f} s" if st.get("trace_s") is not None else " (one kernel per pass)"
     print(f"wrote {args.output} ({img.shape[1]}x{img.shape[0]}, {spp} spp) in {secs:.2f} s; "
-          f"BVH build {st.get('build_s', 0):.2f} s, trace {st.get('trace_s', 0):.2f} s")
+          f"BVH build {st.get('build_s', 0):.2f} s{trace}")
     return 0
 
 
+STATS_SPP = 4  # spp of compare's separate counted pass (work per ray needs few samples)
+
+
 def cmd_compare(mi, args) -> int:
+    from .integrator import EMBREE
     from .report import write_report
     scene = load_scene(mi, args.scene, args.res)
     spp = args.spp or scene_spp(scene)
     props = path_props(mi, scene)
     stock = mi.load_dict({"type": "path", **props})
-    ours = _ours(mi, args, props, stats=True)  # the report shows traversal statistics
+    ours = _ours(mi, args, props)
     ours.tracer(scene)  # build the BVH (and refuse unsupported shapes) before rendering anything
     progress = not args.no_progress
-    stock_img, stock_s = render_passes(mi, scene, stock, spp, args.seed, "stock path", progress)
-    ours_img, ours_s = render_passes(mi, scene, ours, spp, args.seed, "layerbvh", progress)
-    st = dict(ours.last_stats)
-    features = st.pop("features")
+    # Timed renders without work counters: what a user's render costs. Our loop with Embree's
+    # queries (the control) splits our time into the loop's share and the traversal's.
+    st = timed_render(mi, scene, stock, spp, args.seed, "stock path", progress)
+    control = None
+    if args.traversal != EMBREE:
+        control = timed_render(mi, scene, _ours(mi, args, props, traversal=EMBREE), spp, args.seed,
+                               "layerbvh loop + Embree", progress)
+    ou = timed_render(mi, scene, ours, spp, args.seed, "layerbvh", progress)
+    run = dict(ours.last_stats)
+    features = run.pop("features")
+    # Traversal statistics from a separate counted pass (counters cost time; reported apart).
+    counted = _ours(mi, args, props, stats=True)
+    stats_spp = min(spp, STATS_SPP)
+    cs = timed_render(mi, scene, counted, stats_spp, args.seed, "statistics pass", progress)
+    traversal = {k: v for k, v in counted.last_stats.items() if k != "features"}
+    bvh = run.get("bvh", {})
+
+    def side(r):
+        return {"render_s": r.seconds, "compile_s": r.compile_s, "wall_s": r.wall_s}
     info = {
-        "scene": str(args.scene), "spp": spp, "resolution": [int(ours_img.shape[1]), int(ours_img.shape[0])],
+        "scene": str(args.scene), "spp": spp, "resolution": [int(ou.image.shape[1]), int(ou.image.shape[0])],
         "seed": args.seed, "variant": mi.variant(), "integrator": props,
-        "stock": {"render_s": stock_s},
-        "ours": {"render_s": ours_s, "build_s": st.pop("build_s", 0.0), "trace_s": st.pop("trace_s", 0.0),
-                 "shading_s": st.pop("shading_s", 0.0), "traversal": args.traversal,
+        "stock": side(st),
+        "ours": {**side(ou), "calibration_s": ou.calibration_s, "build_s": run.get("build_s", 0.0),
+                 "kernel_load_s": bvh.get("kernel_load_s", 0.0), "loop": run.get("loop"),
+                 "trace_s": run.get("trace_s"), "shading_s": run.get("shading_s"), "traversal": args.traversal,
                  "treelet_height": args.treelet_height},
-        "traversal": st,
+        "auto_choices": run.get("auto_choices", {}),
+        "traversal": traversal,
+        "statistics_pass": {"spp": stats_spp, "render_s": cs.seconds, "compile_s": cs.compile_s},
         "features": features,
     }
-    rep = write_report(args.out, stock_img, ours_img, info)
+    if control is not None:
+        info["embree_control"] = side(control)
+        info["split"] = {"loop_s": control.seconds - st.seconds, "traversal_s": ou.seconds - control.seconds,
+                         "ours_over_stock": ou.seconds / st.seconds if st.seconds else None}
+    rep = write_report(args.out, st.image, ou.image, info)
     m = rep["metrics"]
-    print(f"stock {stock_s:.2f} s, layerbvh {ours_s:.2f} s (build {info['ours']['build_s']:.2f} s); "
+    ratio = f" ({ou.seconds / st.seconds:.1f}x)" if st.seconds else ""
+    split = (f"; our loop with Embree {control.seconds:.2f} s: traversal {ou.seconds - control.seconds:.2f} s, "
+             f"loop {control.seconds - st.seconds:.2f} s") if control is not None else ""
+    print(f"stock {st.seconds:.2f} s, layerbvh {ou.seconds:.2f} s{ratio}{split} (not counted: build "
+          f"{info['ours']['build_s']:.2f} s, compile {ou.compile_s:.2f} s, calibration {ou.calibration_s:.2f} s); "
           f"rmse {m['rmse']:.3g}, FLIP {m['flip_mean']:.3g}, pixels > 1e-3: {100 * m['frac_pixels_over_1e-3']:.3f}%")
     print(str(Path(args.out).resolve() / "index.html"))
     return 0

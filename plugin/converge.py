@@ -6,7 +6,6 @@ import hashlib
 import io
 import json
 import math
-import os
 import re
 import sys
 import time
@@ -17,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from . import atomic, metrics
+from .render import cache_dir, timed_render
 
 REFERENCE_SEED = 100_000  # the reference's passes use seeds 791.9M + k, far from any config's
 EXTRAPOLATION_SLACK = 1.25  # a fit read within 25% of the rendered time range counts as measured
@@ -42,6 +42,7 @@ class Config:
     build_s: float = 0.0
     first_render_s: float = 0.0
     compile_s: float = 0.0
+    calibration_s: float = 0.0  # auto's timing runs, taken out of the render times
     points: list = field(default_factory=list)
     fit: dict = field(default_factory=dict)
 
@@ -51,17 +52,21 @@ class Config:
 
 
 def parse_configs(text: str) -> list[Config]:
-    """`stock,per_ray,layer_sorted:4,layer_sorted:6`: names with an optional treelet height."""
+    """`stock,embree,per_ray,layer_sorted:4,layer_sorted:6`: names with an optional treelet height
+    (`embree`: the layerbvh integrator's loop with Mitsuba's queries, the control that isolates
+    the traversal)."""
     import layerbvh
+
+    from .integrator import EMBREE
     out, seen = [], set()
     for item in (s.strip() for s in text.split(",")):
         if not item:
             continue
         mode, _, height = item.partition(":")
-        if mode == "stock":
+        if mode in ("stock", EMBREE):
             if height:
-                raise ConvergeError(f"--configs: 'stock' takes no treelet height, got {item!r}")
-            cfg = Config("stock")
+                raise ConvergeError(f"--configs: {mode!r} takes no treelet height, got {item!r}")
+            cfg = Config(mode, traversal=None if mode == "stock" else EMBREE)
         elif mode in layerbvh.TRACE_MODES:
             try:
                 h = layerbvh.check_param("treelet_height", int(height) if height else 4)
@@ -70,7 +75,7 @@ def parse_configs(text: str) -> list[Config]:
             plain = mode == "per_ray" or (mode == "auto" and not height)
             cfg = Config(mode if plain else f"{mode}:{h}", traversal=mode, treelet_height=h)
         else:
-            raise ConvergeError(f"--configs: unknown configuration {item!r}; use stock or one of "
+            raise ConvergeError(f"--configs: unknown configuration {item!r}; use stock, {EMBREE} or one of "
                                 f"{', '.join(layerbvh.TRACE_MODES)} (optionally :HEIGHT)")
         if cfg.name in seen:
             raise ConvergeError(f"--configs: {cfg.name!r} is listed twice")
@@ -124,11 +129,6 @@ def reference_key(scene: Path, settings: dict) -> str:
     return h.hexdigest()
 
 
-def default_cache_dir() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "layerbvh" / "references"
-
-
 def reference(mi, scene, scene_path: Path, settings: dict, cache: Path, progress: bool) -> tuple[np.ndarray, dict]:
     """The stock reference image: read from the cache when its key matches, else rendered and stored."""
     from .render import render_passes, write_exr
@@ -164,26 +164,6 @@ def _integrator(mi, cfg: Config, props: dict, leaf_size: int):
                          "leaf_size": leaf_size, **props})
 
 
-def _render(mi, scene, integ, spp: int, seed: int) -> tuple[np.ndarray, float, float]:
-    """(image, seconds without kernel compilation, seconds of kernel compilation).
-
-    Dr.Jit compiles a kernel the first time it sees it; a render that meets a new one pays for
-    the LLVM/NVRTC compile inside its wall time. Dr.Jit's kernel history reports each launch's
-    backend compile time, so it is taken out of the render time and reported on its own."""
-    import drjit as dr
-
-    from .render import render_passes
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    dr.kernel_history()  # drop what came before
-    try:
-        img, secs = render_passes(mi, scene, integ, spp, seed, "", False)
-        history = dr.kernel_history()
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
-    compile_s = sum(k.get("backend_time", 0.0) for k in history if not k.get("cache_hit")) / 1e3  # ms
-    return img, max(secs - compile_s, 0.0), compile_s
-
-
 def run_config(mi, scene, cfg: Config, index: int, props: dict, ref: np.ndarray, budget: float,
                max_spp: int, leaf_size: int, bar) -> None:
     """Render at doubling spp while the next render (predicted: twice the last) fits in the budget."""
@@ -191,12 +171,15 @@ def run_config(mi, scene, cfg: Config, index: int, props: dict, ref: np.ndarray,
     if not cfg.stock:
         cfg.build_s = integ.tracer(scene).build_s  # built once here, outside every timed render
     # Warm-up with its own seed: most kernels compile here; any later compile is subtracted too.
-    _, secs, cfg.compile_s = _render(mi, scene, integ, 1, _seed(index, -1))
-    cfg.first_render_s = secs + cfg.compile_s
+    warm = timed_render(mi, scene, integ, 1, _seed(index, -1))
+    cfg.compile_s, cfg.calibration_s = warm.compile_s, warm.calibration_s
+    cfg.first_render_s = warm.wall_s
     spent, spp, level = 0.0, 1, 0
     while spp <= max_spp:
-        img, secs, compile_s = _render(mi, scene, integ, spp, _seed(index, level))
+        r = timed_render(mi, scene, integ, spp, _seed(index, level))
+        img, secs, compile_s = r.image, r.seconds, r.compile_s
         cfg.compile_s += compile_s
+        cfg.calibration_s += r.calibration_s
         m = metrics.compare_images(ref, img)
         cfg.points.append({"config": cfg.name, "spp": spp, "seconds": secs, "compile_s": compile_s,
                            "rel_mse": m["rel_mse"],
@@ -374,7 +357,7 @@ def run(mi, args) -> dict:
     settings = {"ref_spp": args.ref_spp, "resolution": size, "variant": mi.variant(), "mitsuba": mi.__version__,
                 "integrator": props, "seed": REFERENCE_SEED}
     progress = not args.no_progress
-    ref, ref_info = reference(mi, scene, scene_path, settings, Path(args.cache or default_cache_dir()), progress)
+    ref, ref_info = reference(mi, scene, scene_path, settings, Path(args.cache or cache_dir("references")), progress)
     if progress:
         print(f"reference: {'reused' if ref_info['cached'] else 'rendered'} {ref_info['path']}", file=sys.stderr)
     renders = len(configs) * (int(math.log2(max_spp)) + 1)
@@ -393,6 +376,7 @@ def run(mi, args) -> dict:
         "configs": [{"name": c.name, "traversal": c.traversal or "stock (Embree)", "treelet_height":
                      None if c.stock or c.traversal == "per_ray" else c.treelet_height,
                      "build_s": c.build_s, "first_render_s": c.first_render_s, "compile_s": c.compile_s,
+                     "calibration_s": c.calibration_s,
                      "fit": c.fit, "points": c.points} for c in configs],
         "table": table,
     }

@@ -2,17 +2,21 @@
 from __future__ import annotations
 
 import time
+import json
 from collections import Counter
 from dataclasses import dataclass
+from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
 
 import layerbvh
 
+from . import atomic
 from .adapter import EmbreeQueries, InlineQueries, SceneTracer
 from .features import Features, plan_features
 from .record import bounce_kind
+from .render import cache_dir
 
 EMBREE = "embree"  # the control: our loop, Mitsuba's (Embree's) queries
 TRAVERSALS = layerbvh.TRACE_MODES + (EMBREE,)
@@ -61,11 +65,12 @@ def loop(state: tuple, cond, body, symbolic: bool, label: str) -> tuple:
 @dataclass
 class SceneState:
     """What the integrator keeps per scene: its traversal (BVH built once; None for the embree
-    control) and its feature plan."""
+    control), its feature plan, and where auto's decisions for it are kept between runs."""
 
     scene: object
     tracer: SceneTracer | None
     features: Features
+    auto_file: Path | None = None
 
 
 @dataclass
@@ -144,6 +149,7 @@ class LayerBVHPathTracer:
             raise ValueError(f"layerbvh integrator: {e}") from None
         self._state: SceneState | None = None
         self._vertices = 0  # loop iterations of the last render (wavefront mode)
+        self._auto_per_ray = False  # auto settled every kind of batch of this render on per_ray
         self.last_stats = {}
 
     # -- the BVH and the feature plan, made once per scene ---------------------------------------
@@ -158,7 +164,40 @@ class LayerBVHPathTracer:
                 treelets, analytic = tracer.bvh.stats.treelets, len(tracer.geometry.analytic)
             features = plan_features(scene, analytic, treelets, self.traversal, self.stats, self.adaptive)
             self._state = SceneState(scene, tracer, features)
+            if self.traversal == layerbvh.AUTO:
+                self._state.auto_file = cache_dir("auto") / f"{tracer.device_key()[:32]}.json"
+                try:
+                    tracer.bvh.auto.load(json.loads(self._state.auto_file.read_text()))
+                except (OSError, ValueError):
+                    pass  # nothing kept yet (or unreadable): decide again
         return self._state
+
+    def calibration_s(self) -> float:
+        """Seconds auto has spent timing modes for the current scene, all renders together."""
+        tracer = self._state.tracer if self._state is not None else None
+        return tracer.bvh.auto.calibration_s if tracer is not None else 0.0
+
+    def _plan_auto(self, state: SceneState, scene, sensor, spp: int) -> bool:
+        """auto: settle what it can before rendering, for each kind of batch the render traces
+        (camera and bounce rays: closest hit; shadow rays: any hit), each one ray per pixel
+        sample. True when every kind goes per_ray, so the render can be one megakernel."""
+        tracer = state.tracer
+        sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+        size = sensor.film().crop_size()
+        rays = int(size[0]) * int(size[1]) * int(spp or sensor.sampler().sample_count())
+        policy, treelets = tracer.bvh.auto, tracer.bvh.stats.treelets
+        kinds = [(False, "camera"), (False, "bounce"), (True, "shadow")]
+        modes = [policy.settle(any_hit, hint, min(rays, self.batch_rays), treelets) for any_hit, hint in kinds]
+        return all(mode == "per_ray" for mode in modes)
+
+    def _keep_auto_choices(self, state: SceneState) -> None:
+        """Persist auto's timed decisions, so later runs on this scene, BVH and device skip timing."""
+        timed = {k: c for k, c in state.tracer.bvh.auto_choices.items() if c.get("seconds")}
+        if timed:
+            try:
+                atomic.write_text(state.auto_file, json.dumps(timed, indent=1))
+            except OSError:
+                pass  # a read-only cache costs only the timing next time
 
     def tracer(self, scene) -> SceneTracer | None:
         """The scene's traversal: builds the BVH (and refuses unsupported shapes) on first use;
@@ -169,7 +208,9 @@ class LayerBVHPathTracer:
         """Whether the bounce loop compiles into one kernel (see the class docstring)."""
         if self.traversal == EMBREE:
             return True
-        return self.traversal == "per_ray" and not self.stats and tracer.recorder is None
+        if self.stats or tracer.recorder is not None:
+            return False
+        return self.traversal == "per_ray" or (self.traversal == layerbvh.AUTO and self._auto_per_ray)
 
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         state = self.scene_state(scene)
@@ -177,10 +218,15 @@ class LayerBVHPathTracer:
         if tracer is not None:
             tracer.reset_counters()
         self._vertices = 0
+        if self.traversal == layerbvh.AUTO:
+            self._auto_per_ray = self._plan_auto(state, scene, sensor, spp)
+        cal0 = self.calibration_s()
         t0 = time.perf_counter()
         img = self._base.render(self, scene, sensor, seed, spp, develop, evaluate)
         dr.eval(img)
         total = time.perf_counter() - t0
+        if self.traversal == layerbvh.AUTO:
+            self._keep_auto_choices(state)
         steps = tracer.trace_stats if tracer is not None else []
         megakernel = self.megakernel(tracer)
         trace_s = None if megakernel else tracer.trace_s
@@ -201,8 +247,8 @@ class LayerBVHPathTracer:
             "peak_work_bytes": max((s.work_bytes for s in steps), default=0),
             "bounces": None if megakernel else self._vertices,
             "modes_used": dict(Counter(s.mode for s in steps)),
-            "auto_choices": {} if tracer is None else {"/".join(map(str, k)): v
-                                                       for k, v in tracer.bvh.auto_choices.items()},
+            "auto_choices": {} if tracer is None else dict(tracer.bvh.auto_choices),
+            "calibration_s": self.calibration_s() - cal0,
             "features": state.features.as_dict(),
         }
         return img

@@ -2,8 +2,11 @@
 from __future__ import annotations
 
 import math
+import os
 import sys
 import time
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -113,3 +116,43 @@ def render_passes(mi, scene, integrator, spp: int, seed: int, label: str, progre
 
 def scene_spp(scene) -> int:
     return scene.sensors()[0].sampler().sample_count()
+
+
+@dataclass
+class TimedRender:
+    """A render and where its wall time went."""
+
+    image: np.ndarray
+    wall_s: float         # everything
+    seconds: float        # the render itself: wall time less compilation and calibration
+    compile_s: float      # Dr.Jit kernels compiled during it (LLVM/NVRTC, from the kernel history)
+    calibration_s: float  # auto's timing runs (layerbvh integrator)
+
+
+def timed_render(mi, scene, integrator, spp: int, seed: int, label: str = "", progress: bool = False) -> TimedRender:
+    """`render_passes`, with kernel compilation and auto calibration taken out of the render time.
+
+    Dr.Jit compiles a kernel the first time it sees it; a render that meets a new one pays for
+    the compile inside its wall time. Dr.Jit's kernel history reports each launch's compile
+    time (zero for kernels found in its on-disk cache), so it is reported on its own."""
+    import drjit as dr
+    calibration = getattr(integrator, "calibration_s", lambda: 0.0)
+    cal0 = calibration()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()  # drop what came before
+    try:
+        img, wall = render_passes(mi, scene, integrator, spp, seed, label, progress)
+        history = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    compile_s = sum(k.get("backend_time", 0.0) + k.get("codegen_time", 0.0)
+                    for k in history if not k.get("cache_hit")) / 1e3  # ms
+    cal = calibration() - cal0
+    return TimedRender(img, wall, max(wall - compile_s - cal, 0.0), compile_s, cal)
+
+
+def cache_dir(kind: str) -> Path:
+    """$XDG_CACHE_HOME/layerbvh/<kind> (default ~/.cache/layerbvh/<kind>): stock references,
+    auto's decisions."""
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "layerbvh" / kind

@@ -98,8 +98,11 @@ def _is_number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
+TIMED_SIDES = ("stock", "embree_control", "ours")
+
+
 def _timing_rows(rep: dict) -> list[tuple]:
-    sides = [rep.get(s) if isinstance(rep.get(s), dict) else {} for s in ("stock", "ours")]
+    sides = [rep.get(s) if isinstance(rep.get(s), dict) else {} for s in TIMED_SIDES]
     keys = list(dict.fromkeys(k for side in sides for k, v in side.items() if _is_number(v)))
     return [(k, *(side.get(k) if _is_number(side.get(k)) else None for side in sides)) for k in keys]
 
@@ -110,7 +113,7 @@ def render_html(rep: dict) -> str:
     scene = str(rep.get("scene", "scene"))
     figs = "".join(f'<figure><img src="{f}" alt="{esc(c)}"><figcaption>{esc(c)}</figcaption></figure>\n'
                    for f, c in _IMAGES)
-    run = {k: v for k, v in rep.items() if k not in ("metrics", "stock", "ours", "traversal")}
+    run = {k: v for k, v in rep.items() if k not in ("metrics", *TIMED_SIDES, "traversal")}
     traversal = rep.get("traversal") if isinstance(rep.get("traversal"), dict) else {}
     parts = [
         "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n",
@@ -120,7 +123,7 @@ def render_html(rep: dict) -> str:
         "td,th{border:1px solid #bbb;padding:2px 8px;text-align:left}</style>\n</head>\n<body>\n",
         f"<h1>{esc(scene)}: stock Mitsuba vs ours</h1>\n<div>{figs}</div>\n",
         "<h2>Metrics (ours against stock)</h2>\n", _table(("metric", "value"), rep.get("metrics", {}).items()),
-        "<h2>Timings</h2>\n", _table(("key", "stock", "ours"), _timing_rows(rep)),
+        "<h2>Timings</h2>\n", _table(("key", "stock", "our loop + Embree", "ours"), _timing_rows(rep)),
         "<h2>Traversal statistics</h2>\n", _table(("statistic", "value"), _flatten(traversal)),
         "<h2>Run</h2>\n", _table(("key", "value"), _flatten(run)),
         "</body>\n</html>\n",

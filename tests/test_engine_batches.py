@@ -33,20 +33,31 @@ def test_batch_size_is_checked(bunny):
 
 def test_auto_returns_the_same_hits_and_records_its_choice(procedural):
     v, f = procedural
-    bvh = layerbvh.build(v, f, treelet_height=3, backend="llvm")
+    policy = layerbvh.AutoPolicy(min_rays=1 << 16)  # the CPU rule times only from 2^20 rays
+    bvh = layerbvh.build(v, f, treelet_height=3, backend="llvm", auto_policy=policy)
     o, d = meshes.incoherent_rays(v, 70_000, seed=5)
     ref = bvh.trace(o, d, mode="per_ray")
     a = bvh.trace(o, d, mode="auto", hint="bounce")
     assert np.array_equal(a.prim, ref.prim) and np.array_equal(a.t, ref.t)
     (key, choice), = bvh.auto_choices.items()
-    assert key == ("closest_hit", "bounce", (70_000).bit_length())
+    assert key == f"closest_hit/bounce/{(70_000).bit_length()}"
     assert choice["mode"] in ("per_ray", "layer_sorted") and a.stats.mode == f"auto:{choice['mode']}"
     sec = choice["seconds"]  # layer_sorted only when clearly faster (it needs more memory)
     assert choice["mode"] == ("layer_sorted" if sec["layer_sorted"] < 0.95 * sec["per_ray"] else "per_ray")
+    assert policy.calibration_s > 0
     bvh.trace(o, d, mode="auto", hint="bounce")
     assert len(bvh.auto_choices) == 1, "decided once per kind and size class"
-    small = bvh.trace(o[:1000], d[:1000], mode="auto")
-    assert small.stats.mode == "auto:per_ray" and len(bvh.auto_choices) == 1, "small batches never calibrate"
+    small = bvh.trace(o[:1000], d[:1000], mode="auto", hint="bounce")
+    assert small.stats.mode == "auto:per_ray" and bvh.auto_choices["closest_hit/bounce/10"]["seconds"] is None, \
+        "small batches never calibrate"
+    camera = bvh.trace(o, d, mode="auto", hint="camera")
+    assert camera.stats.mode == "auto:per_ray" and "camera rays" in bvh.auto_choices["closest_hit/camera/17"]["reason"]
+    # Decisions kept from an earlier run are adopted and not timed again.
+    again = layerbvh.AutoPolicy(min_rays=1 << 16)
+    again.load(policy.choices)
+    assert again.known(False, "bounce", 70_000, bvh.stats.treelets) == choice["mode"]
+    assert layerbvh.AutoPolicy().known(False, "bounce", 70_000, bvh.stats.treelets) == "per_ray", \
+        "the CPU rule: below 2^20 rays per_ray"
 
 
 @pytest.mark.parametrize("mode", layerbvh.MODES)

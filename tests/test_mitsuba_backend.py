@@ -14,9 +14,9 @@ from layerbvh_mitsuba.adapter import UnsupportedShapeError
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
 
 
-@pytest.mark.parametrize("name,traversal", [("cbox", "per_ray"), ("cbox", "layer_sorted"),
+@pytest.mark.parametrize("name,traversal", [("cbox", "per_ray"), ("cbox", "layer_sorted"), ("cbox", "embree"),
                                             ("bunny_box", "per_ray"), ("sphere_box", "per_ray"),
-                                            ("empty_box", "layer_unsorted")])
+                                            ("sphere_box", "auto"), ("empty_box", "layer_unsorted")])
 def test_same_seed_matches_stock(name, traversal, tmp_path):
     r = testing.assert_matches_stock(SCENES / f"{name}.xml", spp=8, res=(32, 32), traversal=traversal,
                                      diff_dir=tmp_path)
@@ -29,8 +29,10 @@ def test_same_seed_glass_and_mirror(tmp_path):
                                  max_mean_rel=1e-3, diff_dir=tmp_path)
 
 
-def test_z_test_passes_against_stock():
-    r = testing.assert_statistically_matches_stock(SCENES / "cbox.xml", spp=1024, res=(6, 6), repeats=8)
+@pytest.mark.parametrize("traversal", ["per_ray", "embree", "layer_sorted"])
+def test_z_test_passes_against_stock(traversal):
+    r = testing.assert_statistically_matches_stock(SCENES / "cbox.xml", spp=1024, res=(6, 6), repeats=8,
+                                                   traversal=traversal)
     assert r["pixels"] == 36
 
 
@@ -111,3 +113,33 @@ def test_registered_for_every_variant_set_later():
             "print(type(i).__name__, type(j).__name__)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and r.stdout.split() == ["LayerBVHIntegrator", "LayerBVHIntegrator"], r.stderr
+
+
+def _distinct_kernels(scene, integ) -> int:
+    """Distinct JIT kernels (by hash) a warm render launches, from Dr.Jit's kernel history."""
+    import drjit as dr
+    mi.render(scene, integrator=integ, spp=4, seed=0)  # compiles; the counted render is warm
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()
+    try:
+        mi.render(scene, integrator=integ, spp=4, seed=1)
+        history = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    return len({k["hash"] for k in history if k["type"] == dr.KernelType.JIT})
+
+
+@pytest.mark.parametrize("traversal,loop", [("per_ray", "megakernel"), ("embree", "megakernel"),
+                                            ("layer_sorted", "wavefront")])
+def test_kernels_do_not_multiply_with_path_depth(traversal, loop):
+    scene = testing.load(SCENES / "cbox.xml", (32, 32))
+    counts = {}
+    for depth in (4, 16):
+        integ = mi.load_dict({"type": "layerbvh", "traversal": traversal, "max_depth": depth})
+        counts[depth] = _distinct_kernels(scene, integ)
+        assert integ.last_stats["loop"] == loop
+    # A bounce launches the same kernels whatever its number; a few data-dependent ones (the
+    # per-ray tail of nearly finished wavefront steps) may appear only on longer paths.
+    assert counts[16] <= counts[4] + 8, counts
+    if loop == "megakernel":
+        assert counts[16] <= 4, f"one kernel per render (plus film and sampler set-up): {counts}"
