@@ -7,6 +7,7 @@ import drjit as dr
 import numpy as np
 
 from . import backend as be
+from .layout import MAX_TRIANGLES
 
 
 def _first_bad_row(mask: np.ndarray) -> int:
@@ -42,13 +43,15 @@ def check_mesh(vertices, faces, name: str = "mesh") -> tuple[np.ndarray, np.ndar
         if (f >= len(v)).any():
             i = _first_bad_row(f >= len(v))
             raise ValueError(f"{name}: faces[{i}] references vertex {int(f[i].max())}, only {len(v)} vertices")
+    if len(f) > MAX_TRIANGLES:
+        raise ValueError(f"{name}: {len(f):,} triangles; a Layer BVH addresses at most {MAX_TRIANGLES:,}")
     return v, f
 
 
 # Bounds (inclusive) of the build and trace parameters: the one place they are defined.
 PARAM_RANGES = {
     "treelet_height": (1, 64),   # levels per treelet; the BVH is at most sah.MAX_DEPTH deep
-    "leaf_size": (1, 64),        # triangles per leaf at most
+    "leaf_size": (1, 16),        # triangles per leaf at most (a leaf link holds counts up to 31)
     "batch_rays": (1, 1 << 31),  # rays per traced batch (work memory)
     "tail_rays": (0, 1 << 31),   # rays left when the layer modes finish with one per-ray kernel
 }

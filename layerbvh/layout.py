@@ -9,12 +9,15 @@ import numpy as np
 
 from .sah import BinaryBVH, build_binned_sah, triangle_bounds
 
-# Child links (uint32). Bit 31: BVH leaf, payload = leaf index. Bit 30: exit into a child
-# treelet, payload = treelet id (its root is `treelet_first[id]`). Neither: inner node of the
-# same treelet, payload = node index.
+# Child links (uint32). Bit 31: BVH leaf, carrying its triangle range (leaf_link), so reaching a
+# leaf reads no leaf record. Else bit 30: exit into a child treelet, payload = treelet id (its
+# root is `treelet_first[id]`). Neither: inner node of the same treelet, payload = node index.
 LEAF_BIT = np.uint32(1 << 31)
 EXIT_BIT = np.uint32(1 << 30)
 PAYLOAD_MASK = np.uint32((1 << 30) - 1)
+LEAF_COUNT_SHIFT = 26   # leaf link: bits 26..30 the triangle count, bits 0..25 the first triangle
+LEAF_FIRST_MASK = np.uint32((1 << LEAF_COUNT_SHIFT) - 1)
+MAX_TRIANGLES = 1 << LEAF_COUNT_SHIFT  # 67,108,864: what a leaf link can address
 # A link value no node, leaf or exit has: "take the next entry from the stack". It is not the
 # MISS of a result (state.MISS), only equal to it in bits.
 POP = 0xFFFFFFFF
@@ -38,6 +41,16 @@ LEAF_COUNT = 1          # number of triangles
 LEAF_UINTS = 2          # total: 8 bytes
 
 
+def leaf_link(first, count):
+    """The link of a leaf holding triangles first .. first+count-1 (leaf order); numpy or Dr.Jit."""
+    return LEAF_BIT | (count << LEAF_COUNT_SHIFT) | first
+
+
+def leaf_range(link):
+    """(first triangle, count) of a leaf link; numpy or Dr.Jit."""
+    return link & LEAF_FIRST_MASK, (link & ~LEAF_BIT) >> LEAF_COUNT_SHIFT
+
+
 @dataclass
 class LayerLayout:
     """The arrays the traversal kernels read, all flat and contiguous.
@@ -45,7 +58,8 @@ class LayerLayout:
     nodes           float32 (N*16): one 64-byte record per inner node (fields NODE_*), treelet
                     0's nodes first, each treelet's nodes breadth-first
     leaves          uint32 (L*2): per BVH leaf (first triangle, triangle count: LEAF_*), grouped
-                    by the treelet of the leaf's parent, in that treelet's breadth-first order
+                    by the treelet of the leaf's parent, in that treelet's breadth-first order (the
+                    kernels read the range from the leaf link; this record is for checks and tools)
     tris            float32 (F*16): per triangle in leaf order, one 64-byte record (fields TRI_*):
                     vertices, the caller's face index, the float64 geometric normal
     treelet_first   uint32 (T+1): first node of each treelet, plus the node count at the end
@@ -86,14 +100,13 @@ class LayerLayout:
     def to_device(self, m) -> "DeviceLayout":
         """The arrays on Dr.Jit array module `m` (backend.module)."""
         return DeviceLayout(
-            nodes=m.Float(self.nodes), leaves=m.UInt32(self.leaves), tris=m.Float(self.tris),
-            treelet_first=m.UInt32(self.treelet_first), node_treelet=m.UInt32(self.node_treelet),
-            leaf_treelet=m.UInt32(self.leaf_treelet), depth=self.depth, height=self.height,
+            nodes=m.Float(self.nodes), tris=m.Float(self.tris), treelet_first=m.UInt32(self.treelet_first),
+            node_treelet=m.UInt32(self.node_treelet), depth=self.depth, height=self.height,
             treelet_count=self.treelet_count)
 
     def array_bytes(self) -> dict:
-        return {name: int(getattr(self, name).nbytes)
-                for name in ("nodes", "leaves", "tris", "treelet_first", "node_treelet", "leaf_treelet")}
+        """Bytes of each array the traversal keeps on the device (see DeviceLayout)."""
+        return {name: int(getattr(self, name).nbytes) for name in ("nodes", "tris", "treelet_first", "node_treelet")}
 
 
 @dataclass
@@ -102,11 +115,9 @@ class DeviceLayout:
     LayerLayout.to_device."""
 
     nodes: object
-    leaves: object
     tris: object
     treelet_first: object
     node_treelet: object
-    leaf_treelet: object
     depth: int
     height: int
     treelet_count: int
@@ -156,8 +167,14 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray, faces: np.ndarray, heigh
     new_leaf[leaf_order] = np.arange(len(leaf_order))
     n_treelets = int(is_root.sum())
 
+    # Triangles in leaf order: leaf i covers tris[first_i : first_i + count_i].
+    counts = b.count[leaf_order]
+    first = np.cumsum(counts) - counts
+    leaf_first = np.zeros(m, np.int64)
+    leaf_first[leaf_order] = first
+
     def link(child, par):
-        out = np.where(leaf[child], LEAF_BIT | new_leaf[child].astype(np.uint32),
+        out = np.where(leaf[child], leaf_link(leaf_first[child].astype(np.uint32), b.count[child].astype(np.uint32)),
                        np.where(tre[child] != tre[par], EXIT_BIT | tre[child].astype(np.uint32),
                                 new_idx[child].astype(np.uint32)))
         return out.astype(np.uint32)
@@ -170,9 +187,6 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray, faces: np.ndarray, heigh
         rec[:, NODE_LINK[side]] = link(child, order).view(np.float32)
     rec[:, NODE_DEPTH] = b.depth[order]
 
-    # Triangles in leaf order: leaf i covers tris[first_i : first_i + count_i].
-    counts = b.count[leaf_order]
-    first = np.cumsum(counts) - counts
     tri_ids = b.perm[_ranges(b.start[leaf_order], counts)]
     tri = np.zeros((len(tri_ids), TRI_FLOATS), np.float32)
     _triangle_records(vertices, faces, tri_ids, tri, tri.view(np.uint32), tri.view(np.float64))
@@ -235,7 +249,18 @@ def check_layout(lay: LayerLayout, n_faces: int) -> None:
     is_leaf = (links & LEAF_BIT) != 0
     is_exit = ~is_leaf & ((links & EXIT_BIT) != 0)
     payload = (links & PAYLOAD_MASK).astype(np.int64)
-    assert np.all(payload[is_leaf] < nl), "a leaf link points past the leaf array"
+    lv = lay.leaves.reshape(-1, LEAF_UINTS).astype(np.int64)
+    first, count = lv[:, LEAF_FIRST], lv[:, LEAF_COUNT]
+    # A leaf link carries (first, count); its leaf is the record with that range (leaves are
+    # contiguous in triangle order, so first + the count tell them apart, even an empty one).
+    l_first, l_count = (x.astype(np.int64) for x in leaf_range(links))
+    leaf_key = first * (MAX_TRIANGLES + 1) + count
+    order = np.argsort(leaf_key, kind="stable")
+    pos = np.searchsorted(leaf_key[order], l_first * (MAX_TRIANGLES + 1) + l_count)
+    pos = np.minimum(pos, nl - 1)
+    found = is_leaf & (leaf_key[order][pos] == l_first * (MAX_TRIANGLES + 1) + l_count)
+    assert np.all(found[is_leaf]), "a leaf link's triangle range is no leaf's"
+    payload = np.where(is_leaf, order[pos], payload)
     assert np.all(payload[is_exit] < nt), "an exit link points past the treelet array"
     inner = ~is_leaf & ~is_exit
     assert np.all(payload[inner] < n), "a node link points past the node array"
@@ -258,8 +283,6 @@ def check_layout(lay: LayerLayout, n_faces: int) -> None:
     assert np.all(depth - root_depth[lay.node_treelet] < h), "a treelet is taller than its height"
     assert np.all(np.diff(depth[tf[:-1]]) >= 0) or nt == 1, "treelets are not in breadth-first order"
     # Every triangle in exactly one leaf, leaves contiguous in triangle order.
-    lv = lay.leaves.reshape(-1, LEAF_UINTS).astype(np.int64)
-    first, count = lv[:, LEAF_FIRST], lv[:, LEAF_COUNT]
     assert first.tolist() == (np.cumsum(count) - count).tolist(), "leaf triangle ranges are not contiguous"
     assert count.sum() == n_faces, "leaves do not cover every triangle exactly once"
     ids = lay.tris.reshape(-1, TRI_FLOATS)[:, TRI_FACE].view(np.uint32)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 import layerbvh
-from layerbvh.layout import EXIT_BIT, LEAF_BIT, NODE_FLOATS, PAYLOAD_MASK, TRI_FLOATS
+from layerbvh.layout import EXIT_BIT, LEAF_BIT, NODE_BOX_HI, NODE_BOX_LO, NODE_FLOATS, PAYLOAD_MASK, TRI_FACE, TRI_FLOATS, leaf_range
 
 
 def _box_entry(lo, hi, o, d):
@@ -29,16 +29,16 @@ def _hit_tri(p, o, d):
 def one_exit_trace(lay, o, d):
     """The paper's traversal: per treelet, keep only the nearest exit (child treelet or leaf)."""
     rec = lay.nodes.reshape(-1, NODE_FLOATS)
-    links = rec[:, 12:14].view(np.uint32)
+    links = lay.links()
     tris = lay.tris.reshape(-1, TRI_FLOATS)
-    leaves = lay.leaves.reshape(-1, 2)
     node = 0
     while True:
         exits, todo = [], [node]
         while todo:  # the whole treelet, collecting its exits
             n = todo.pop()
             for side in (0, 1):
-                t = _box_entry(rec[n, 6 * side:6 * side + 3], rec[n, 6 * side + 3:6 * side + 6], o, d)
+                lo, hi = NODE_BOX_LO[side], NODE_BOX_HI[side]
+                t = _box_entry(rec[n, lo:lo + 3], rec[n, hi:hi + 3], o, d)
                 if t is None:
                     continue
                 lk = int(links[n, side])
@@ -50,9 +50,9 @@ def one_exit_trace(lay, o, d):
             return None
         _, lk = min(exits)
         if lk & LEAF_BIT:
-            first, count = leaves[lk & PAYLOAD_MASK]
+            first, count = (int(x) for x in leaf_range(np.uint32(lk)))
             ts = [(_hit_tri(tris[i, :9].reshape(3, 3).astype(np.float64), o, d), i) for i in range(first, first + count)]
-            ts = [(t, tris[i, 9:10].view(np.uint32)[0]) for t, i in ts if t is not None]
+            ts = [(t, tris[i, TRI_FACE:TRI_FACE + 1].view(np.uint32)[0]) for t, i in ts if t is not None]
             return min(ts) if ts else None
         node = int(lay.treelet_first[lk & PAYLOAD_MASK])
 

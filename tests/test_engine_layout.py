@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import layerbvh
-from layerbvh.layout import EXIT_BIT, LEAF_BIT, NODE_FLOATS, check_layout
+from layerbvh.layout import EXIT_BIT, LEAF_BIT, NODE_DEPTH, NODE_FLOATS, NODE_LINK, check_layout
 from layerbvh.sah import MAX_DEPTH, triangle_bounds
 from layerbvh_mitsuba.bench import meshes
 
@@ -36,10 +36,10 @@ def test_layout_invariants_bunny(bunny, height):
     assert counts.max() <= 2 ** height - 1, "a treelet of height H holds at most 2^H - 1 nodes"
     assert s.leaves == s.nodes + 1, "a binary tree has one more leaf than inner nodes"
     # Treelet roots are exactly the inner nodes at depths 0, H, 2H, ...
-    depth = bvh.layout.nodes.reshape(-1, NODE_FLOATS)[:, 14].astype(int)
+    depth = bvh.layout.nodes.reshape(-1, NODE_FLOATS)[:, NODE_DEPTH].astype(int)
     assert s.treelets == int(np.sum(depth % height == 0))
     assert s.bytes["nodes"] == 64 * s.nodes and s.bytes["tris"] == 64 * s.triangles
-    assert s.bytes["leaves"] == 8 * s.leaves
+    assert set(s.bytes) == {"nodes", "tris", "treelet_first", "node_treelet"}, "what the device holds"
 
 
 @pytest.mark.parametrize("leaf_size", [1, 4, 16])
@@ -83,7 +83,7 @@ def test_check_layout_catches_corruption(bunny):
     v, f = bunny
     bvh = layerbvh.build(v, f, treelet_height=3)
     lay = bvh.layout
-    links = lay.nodes.reshape(-1, NODE_FLOATS)[:, 12:14].view(np.uint32)
+    links = lay.links()
     inner = np.nonzero((links[:, 0] & (LEAF_BIT | EXIT_BIT)) == 0)[0]
     saved = links[inner[0], 0]
     links[inner[0], 0] = links[inner[1], 0]  # one node referenced twice, another never
