@@ -41,6 +41,15 @@ LEAF_COUNT = 1          # number of triangles
 LEAF_UINTS = 2          # total: 8 bytes
 
 
+def _aligned(a: np.ndarray, align: int = 64) -> np.ndarray:
+    """A copy of `a` whose data starts on an `align`-byte boundary."""
+    buf = np.empty(a.nbytes + align, np.uint8)
+    start = -buf.ctypes.data % align
+    out = buf[start:start + a.nbytes].view(a.dtype).reshape(a.shape)
+    out[...] = a
+    return out
+
+
 def leaf_link(first, count):
     """The link of a leaf holding triangles first .. first+count-1 (leaf order); numpy or Dr.Jit."""
     return LEAF_BIT | (count << LEAF_COUNT_SHIFT) | first
@@ -99,10 +108,13 @@ class LayerLayout:
 
     def to_device(self, m) -> "DeviceLayout":
         """The arrays on Dr.Jit array module `m` (backend.module)."""
+        # Dr.Jit maps numpy memory as it is; an array that is not 64-byte aligned cannot be read
+        # with packet gathers (8-float loads plus a transpose) and falls back to one vpgatherdd
+        # per float, so the records go to the device from aligned copies.
         return DeviceLayout(
-            nodes=m.Float(self.nodes), tris=m.Float(self.tris), treelet_first=m.UInt32(self.treelet_first),
-            node_treelet=m.UInt32(self.node_treelet), depth=self.depth, height=self.height,
-            treelet_count=self.treelet_count)
+            nodes=m.Float(_aligned(self.nodes)), tris=m.Float(_aligned(self.tris)),
+            treelet_first=m.UInt32(self.treelet_first), node_treelet=m.UInt32(self.node_treelet),
+            depth=self.depth, height=self.height, treelet_count=self.treelet_count)
 
     def array_bytes(self) -> dict:
         """Bytes of each array the traversal keeps on the device (see DeviceLayout)."""

@@ -40,10 +40,9 @@ class RayRecords:
         self.rec = rec
 
     def load(self, slot):
-        """(origin, direction) of the rays in `slot`, as three Floats each."""
-        base = slot * self.STRIDE
-        x = [dr.gather(self.m.Float, self.rec, base + c) for c in range(6)]
-        return x[:3], x[3:]
+        """(origin, direction) of the rays in `slot`, as three Floats each (one packet load)."""
+        x = dr.gather(self.m.ArrayXf, self.rec, slot, shape=(self.STRIDE, dr.width(slot)))
+        return [x[c] for c in range(3)], [x[c] for c in range(3, 6)]
 
 
 class DirectRays:
