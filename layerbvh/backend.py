@@ -33,3 +33,35 @@ def backend_of(x) -> str | None:
     if b == dr.JitBackend.CUDA:
         return "cuda"
     return None
+
+
+def llvm_vector_width() -> int:
+    """Lanes per packet of Dr.Jit's LLVM backend (8 with AVX2, 16 with AVX-512)."""
+    return _llvm_target()[2]()
+
+
+def set_llvm_vector_width(width: int) -> None:
+    """Make the LLVM backend compile kernels for packets of `width` lanes (a power of two,
+    4..64; wider than the CPU's vectors, LLVM splits each operation). Dr.Jit 1.5 does not expose
+    this in Python; drjit-core exports `jit_llvm_set_target(cpu, features, width)`, called here
+    with the current CPU and features. Kernels compiled afterwards use the new width."""
+    if width not in (4, 8, 16, 32, 64):
+        raise ValueError(f"vector width must be 4, 8, 16, 32 or 64, got {width}")
+    cpu, features, _, set_target = _llvm_target()
+    set_target(cpu(), features(), width)
+
+
+def _llvm_target():
+    import ctypes
+    from pathlib import Path
+    dr.llvm.Float(0).index  # noqa: B018  (initialises the LLVM backend)
+    try:
+        lib = ctypes.CDLL(str(Path(dr.__file__).parent / "libdrjit-core.so"))
+        cpu, features = lib._Z19jit_llvm_target_cpuv, lib._Z24jit_llvm_target_featuresv
+        width, set_target = lib._Z21jit_llvm_vector_widthv, lib._Z19jit_llvm_set_targetPKcS0_j
+    except (OSError, AttributeError) as e:
+        raise RuntimeError(f"this Dr.Jit build does not export the LLVM target settings ({e})") from None
+    cpu.restype = features.restype = ctypes.c_char_p
+    width.restype = ctypes.c_uint32
+    set_target.argtypes = [ctypes.c_char_p, ctypes.c_char_p, ctypes.c_uint32]
+    return cpu, features, width, set_target

@@ -121,10 +121,14 @@ def hit_triangle(m, tris, tri, ray: Ray, active):
     # normal, rounded once: the sheared float formula (T / det) loses up to 1e-2 relative at short
     # range, this is within an ulp, and it gives identical t for duplicated triangles and for
     # coplanar faces on axis-aligned planes, so such ties go by primitive id, not by rounding.
-    n = [f64_from_halves(m, rec[TRI_NORMAL + 2 * c], rec[TRI_NORMAL + 2 * c + 1]) for c in range(3)]
-    n_to_v0 = sum(n[c] * (F64(rec[TRI_VERTEX[0] + c]) - F64(ray.o[c])) for c in range(3))
-    n_dot_d = sum(n[c] * F64(ray.d[c]) for c in range(3))
-    t = m.Float(n_to_v0 / n_dot_d)
-    hit = active & ~outside & (det != 0) & (n_dot_d != 0) & (t > 0)
+    # Only for rays inside the triangle: a packet with no such lane skips the float64 work.
+    inside = active & ~outside & (det != 0)
+    t = m.Float(dr.inf)
+    if inside:
+        n = [f64_from_halves(m, rec[TRI_NORMAL + 2 * c], rec[TRI_NORMAL + 2 * c + 1]) for c in range(3)]
+        n_to_v0 = sum(n[c] * (F64(rec[TRI_VERTEX[0] + c]) - F64(ray.o[c])) for c in range(3))
+        n_dot_d = sum(n[c] * F64(ray.d[c]) for c in range(3))
+        t = dr.select(n_dot_d != 0, m.Float(n_to_v0 / n_dot_d), dr.inf)
+    hit = inside & (t > 0) & (t < dr.inf)
     prim = dr.reinterpret_array(m.UInt32, rec[TRI_FACE])
     return hit, t, V * rcp, W * rcp, prim

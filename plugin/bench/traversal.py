@@ -76,8 +76,18 @@ def parse_args(argv=None):
     p.add_argument("--kinds", help="comma list of recorded ray kinds to bench (default: all in the file)")
     p.add_argument("--batch-rays", type=int, default=layerbvh.BATCH_RAYS,
                    help="rays per trace batch of the layerbvh modes (default %(default)s; bounds work memory)")
+    p.add_argument("--vector-widths", default="",
+                   help="comma list of LLVM packet widths (lanes per SIMD packet: 4, 8, 16, 32): the benchmark once "
+                        "per width, one process each, merged (default: the CPU's own, 8 with AVX2)")
+    p.add_argument("--vector-width", type=int, help=argparse.SUPPRESS)
     p.add_argument("--json", metavar="OUT", help="write every figure to this JSON file")
     args = p.parse_args(argv)
+    try:
+        args.vector_widths = [int(w) for w in args.vector_widths.split(",") if w.strip()]
+    except ValueError:
+        p.error(f"--vector-widths must be a comma list of integers, got {args.vector_widths!r}")
+    if (args.vector_widths or args.vector_width) and args.backend != "llvm":
+        p.error("--vector-widths applies to the llvm backend only")
     try:
         args.heights = [int(h) for h in args.heights.split(",") if h.strip()]
     except ValueError:
@@ -383,11 +393,14 @@ def bench_mesh(name: str, v, f, ray_sets, args, source: str = "generated") -> li
     bvhs = {h: layerbvh.build(v, f, treelet_height=h, backend=args.backend,
                               batch_rays=getattr(args, "batch_rays", layerbvh.BATCH_RAYS)) for h in args.heights}
     rows = []
+    width = layerbvh.backend.llvm_vector_width() if args.backend == "llvm" else None
     for kind, o, d, tmax, any_hit in ray_sets:
         configs = make_configs(scene, embree_build_s, bvhs, o, d, tmax, any_hit, args.backend, kind)
         measure(configs, args.runs)
         diff = prim_mismatches(configs)
         kind_rows = result_rows(name, len(f), kind, configs, len(o), diff, any_hit, source)
+        for r in kind_rows:
+            r["vector_width"] = width
         print_table(kind_rows)
         print()
         print_agreement(diff, len(o), any_hit)
@@ -396,9 +409,66 @@ def bench_mesh(name: str, v, f, ray_sets, args, source: str = "generated") -> li
     return rows
 
 
+def run_widths(args, argv) -> int:
+    """--vector-widths: the whole benchmark once per packet width, each in its own process (Dr.Jit
+    reuses compiled kernels across a width change within one process and crashes), merged into
+    one JSON whose rows carry `vector_width`."""
+    import subprocess
+    import tempfile
+    rest, skip = [], False
+    for a in argv:  # the same arguments without --vector-widths and --json
+        if skip:
+            skip = False
+        elif a in ("--vector-widths", "--json"):
+            skip = True
+        elif not a.startswith(("--vector-widths=", "--json=")):
+            rest.append(a)
+    doc = None
+    for width in args.vector_widths:
+        print(f"\n# packet width {width} lanes\n", flush=True)
+        with tempfile.TemporaryDirectory() as tmp:
+            out = Path(tmp) / "bench.json"
+            rc = subprocess.call([sys.executable, "-m", "layerbvh_mitsuba.bench.traversal", *rest,
+                                  "--vector-width", str(width), "--json", str(out)])
+            if rc != 0:
+                print(f"error: the run at packet width {width} failed (exit {rc})", file=sys.stderr)
+                return rc
+            part = json.loads(out.read_text())
+        doc = part if doc is None else {**doc, "results": doc["results"] + part["results"]}
+    if args.json:
+        doc["command"] = shlex.join(getattr(sys, "orig_argv", [sys.executable] + sys.argv))
+        write_json(args.json, doc)
+        print(f"\nwrote {args.json}")
+    print_width_table(doc["results"])
+    return 0
+
+
+def print_width_table(rows: list[dict]) -> None:
+    """sorted × per_ray (best height of each) against the packet width, per ray set."""
+    widths = sorted({r["vector_width"] for r in rows})
+    sets = list(dict.fromkeys((r["mesh"], r["rays"]) for r in rows))
+    print("\n## sorted × per_ray against packet width (best treelet height of each mode)\n")
+    print("| mesh | rays | " + " | ".join(f"{w} lanes" for w in widths) + " |")
+    print("|---|---|" + "---:|" * len(widths))
+    for mesh, kind in sets:
+        cells = []
+        for w in widths:
+            sel = [r for r in rows if (r["mesh"], r["rays"], r["vector_width"]) == (mesh, kind, w)]
+            best = {m: max((r["mrays_s"] for r in sel if r["mode"] == m), default=None)
+                    for m in ("per_ray", "layer_sorted")}
+            cells.append("–" if None in best.values() else
+                         f"{best['layer_sorted'] / best['per_ray']:.2f} ({best['per_ray']:.2f} / "
+                         f"{best['layer_sorted']:.2f} Mr/s)")
+        print(f"| {mesh} | {kind} | " + " | ".join(cells) + " |")
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
+    if args.vector_widths:
+        return run_widths(args, list(sys.argv[1:] if argv is None else argv))
     use_variant()
+    if args.vector_width is not None:
+        layerbvh.backend.set_llvm_vector_width(args.vector_width)  # before any kernel is compiled
     command = shlex.join(getattr(sys, "orig_argv", [sys.executable] + sys.argv))
     machine = machine_info(args.backend)
     print(f"# Traversal benchmark\n\n`{command}`\n")
