@@ -8,12 +8,12 @@ import drjit as dr
 
 from . import backend as be
 from .auto import AUTO, AutoPolicy
-from .inputs import RayBatch, check_mesh, check_param, ray_batch
+from .inputs import DEFAULT_LEAF_SIZE, DEFAULT_TREELET_HEIGHT, RayBatch, check_mesh, check_param, ray_batch
 from .layout import LayerLayout, check_layout, load_builder_kernels, to_layer_layout
 from .sah import BinaryBVH, build_binned_sah, triangle_bounds
 from .state import MISS, Results
 from .stats import BVHStats, TraceStats
-from .wavefront import MODES, TAIL_RAYS, trace as _trace, trace_inline
+from .wavefront import MODES, TAIL_FRACTION, TAIL_RAYS, trace as _trace, trace_inline
 
 # Rays traced per batch. The layer modes' work memory is about batch x (tree depth x 8 B of
 # entry stack + 2 x 36 B of ray state + 32 B ray record + 40 B in/out); 1M rays, depth 40: ~500 MB.
@@ -46,14 +46,18 @@ class LayerBVH:
     """A binned-SAH BVH over triangles, laid out as a Layer BVH (see layout.LayerLayout).
 
     `batch_rays` bounds how many rays one kernel pass holds (the work memory); `tail_rays`: when
-    this few rays are left in the layer modes, one per-ray kernel finishes them; `auto_policy`
+    this few rays (or `tail_fraction` of a batch) are left in the layer modes, one per-ray kernel
+    finishes them; `auto_policy`
     decides mode="auto" (default: auto.AutoPolicy's rules for the backend)."""
 
-    def __init__(self, vertices, faces, treelet_height=4, leaf_size=4, backend=None, batch_rays=BATCH_RAYS,
-                 tail_rays=TAIL_RAYS, auto_policy: AutoPolicy | None = None):
+    def __init__(self, vertices, faces, treelet_height=DEFAULT_TREELET_HEIGHT, leaf_size=DEFAULT_LEAF_SIZE, backend=None, batch_rays=BATCH_RAYS,
+                 tail_rays=TAIL_RAYS, auto_policy: AutoPolicy | None = None, tail_fraction: float = TAIL_FRACTION):
         treelet_height = check_param("treelet_height", treelet_height)
         self.batch_rays = check_param("batch_rays", batch_rays)
         self.tail_rays = check_param("tail_rays", tail_rays)
+        if not 0.0 <= tail_fraction <= 1.0:
+            raise ValueError(f"tail_fraction must be in [0, 1], got {tail_fraction}")
+        self.tail_fraction = float(tail_fraction)
         leaf_size = check_param("leaf_size", leaf_size)
         v, f = check_mesh(vertices, faces)
         self.vertices, self.faces = v, f
@@ -88,7 +92,8 @@ class LayerBVH:
 
     # -- tracing ---------------------------------------------------------------------------------
     def _trace_batch(self, batch: RayBatch, mode: str, any_hit: bool, count_work: bool):
-        return _trace(self.m, self.device, batch, mode, any_hit, self.tail_rays, count_work=count_work)
+        return _trace(self.m, self.device, batch, mode, any_hit, self.tail_rays, count_work=count_work,
+                      tail_fraction=self.tail_fraction)
 
     def _run(self, origins, directions, tmax, active, mode, any_hit, count_work, hint):
         if mode not in TRACE_MODES:
@@ -170,9 +175,11 @@ class LayerBVH:
         return Hits(t=dr.select(hit, out.t, dr.inf), prim=out.prim, u=out.u, v=out.v, stats=None)
 
 
-def build(vertices, faces, treelet_height: int = 4, leaf_size: int = 4, backend: str | None = None,
-          batch_rays: int = BATCH_RAYS, tail_rays: int = TAIL_RAYS, auto_policy: AutoPolicy | None = None) -> LayerBVH:
+def build(vertices, faces, treelet_height: int = DEFAULT_TREELET_HEIGHT, leaf_size: int = DEFAULT_LEAF_SIZE,
+          backend: str | None = None,
+          batch_rays: int = BATCH_RAYS, tail_rays: int = TAIL_RAYS, auto_policy: AutoPolicy | None = None,
+          tail_fraction: float = TAIL_FRACTION) -> LayerBVH:
     """Build a Layer BVH over a triangle mesh: vertices (V, 3) float, faces (F, 3) int.
     `batch_rays` bounds how many rays one trace call processes at once (peak memory)."""
     return LayerBVH(vertices, faces, treelet_height=treelet_height, leaf_size=leaf_size, backend=backend,
-                    batch_rays=batch_rays, tail_rays=tail_rays, auto_policy=auto_policy)
+                    batch_rays=batch_rays, tail_rays=tail_rays, auto_policy=auto_policy, tail_fraction=tail_fraction)

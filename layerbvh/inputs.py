@@ -48,6 +48,11 @@ def check_mesh(vertices, faces, name: str = "mesh") -> tuple[np.ndarray, np.ndar
     return v, f
 
 
+# Defaults of the build parameters (PERFORMANCE.md entry 20: h = 8 was the best treelet height
+# of both per_ray and the layer modes across the benchmark's ray sets).
+DEFAULT_TREELET_HEIGHT = 8
+DEFAULT_LEAF_SIZE = 4
+
 # Bounds (inclusive) of the build and trace parameters: the one place they are defined.
 PARAM_RANGES = {
     "treelet_height": (1, 64),   # levels per treelet; the BVH is at most sah.MAX_DEPTH deep

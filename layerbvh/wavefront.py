@@ -16,6 +16,9 @@ ENTRY_BYTES = 8  # one entry-stack slot: link (uint32) + entry distance (float32
 # When this few rays are left, one per-ray kernel finishes them from their entry stacks: a
 # long tail of nearly empty wavefront steps costs host time per step and buys no locality.
 TAIL_RAYS = 2048
+# ... and so does it once this share of a batch is left: the first steps, with many rays per
+# treelet, are where sorting pays (PERFORMANCE.md entry 20).
+TAIL_FRACTION = 0.25
 
 
 def _sync():
@@ -24,7 +27,7 @@ def _sync():
 
 
 def trace(m, lay: DeviceLayout, batch: RayBatch, mode: str, any_hit: bool, tail_rays: int = TAIL_RAYS,
-          count_work: bool = True):
+          count_work: bool = True, tail_fraction: float = TAIL_FRACTION):
     """Closest hit (or any hit) of every ray of `batch`; returns (Results, TraceStats)."""
     n = batch.n
     stats = TraceStats(mode=mode, rays=n)
@@ -53,17 +56,18 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, mode: str, any_hit: bool, tail_
     sort = mode == "layer_sorted"
     cap_local = max(1, min(lay.height, lay.depth))
     cap_global = max(1, lay.depth)
-    st_link = dr.zeros(m.UInt32, n * cap_global)
-    st_t = dr.zeros(m.Float, n * cap_global)
+    # Entries are only read below a ray's stack pointer, so the stacks need no zeroing.
+    st_link = dr.empty(m.UInt32, n * cap_global)
+    st_t = dr.empty(m.Float, n * cap_global)
     finished = lay.treelet_count  # bucket after every treelet: finished rays sort last
     buckets = 1 << max(1, (finished).bit_length())
     state_bytes = len(s.fields()) * 4
     peak = 0
-    n_active = dr.width(s.t)
+    n_active = n0 = dr.width(s.t)
     while n_active > 0:
         stats.active_per_step.append(n_active)
         ta = _sync()
-        if n_active <= tail_rays and stats.steps > 0:
+        if n_active <= max(tail_rays, int(tail_fraction * n0)) and stats.steps > 0:
             # Same nearest-first order as the steps, so the same hits and work counts.
             out, done, _, _ = walk(m, lay, rays, s, (st_link, st_t, cap_global), cap_global, False, any_hit, count_work)
             res.write(out, done)

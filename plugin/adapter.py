@@ -83,7 +83,8 @@ class SceneTracer:
 
     Built once per scene; every query returns Mitsuba types (PreliminaryIntersection3f, Bool)."""
 
-    def __init__(self, scene, traversal: str = "auto", treelet_height: int = 4, leaf_size: int = 4,
+    def __init__(self, scene, traversal: str = "auto", treelet_height: int = layerbvh.DEFAULT_TREELET_HEIGHT,
+                 leaf_size: int = layerbvh.DEFAULT_LEAF_SIZE,
                  count_work: bool = True, batch_rays: int = layerbvh.BATCH_RAYS):
         t0 = time.perf_counter()
         self.scene = scene

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+import layerbvh
+
 from .render import UserError, load_scene, path_props, render_passes, scene_spp, timed_render, use_variant, write_exr
 
 
@@ -23,8 +25,8 @@ def _parser() -> argparse.ArgumentParser:
         sp.add_argument("--traversal", default="auto",
                         help="auto | per_ray | layer_sorted | layer_unsorted | embree (our loop, Mitsuba's queries: "
                              "the control) (default auto)")
-        sp.add_argument("--treelet-height", type=int, default=4)
-        sp.add_argument("--leaf-size", type=int, default=4)
+        sp.add_argument("--treelet-height", type=int, default=layerbvh.DEFAULT_TREELET_HEIGHT)
+        sp.add_argument("--leaf-size", type=int, default=layerbvh.DEFAULT_LEAF_SIZE)
         sp.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb, cuda_ad_rgb)")
         sp.add_argument("--no-progress", action="store_true")
 
@@ -45,7 +47,7 @@ def _parser() -> argparse.ArgumentParser:
     v.add_argument("--ref-spp", type=int, default=4096, help="spp of the stock reference (default %(default)s)")
     v.add_argument("--max-spp", type=int, help="stop doubling here even within budget (default ref spp / 16)")
     v.add_argument("--res", type=int, nargs=2, metavar=("W", "H"), help="film resolution (default: the scene's)")
-    v.add_argument("--leaf-size", type=int, default=4)
+    v.add_argument("--leaf-size", type=int, default=layerbvh.DEFAULT_LEAF_SIZE)
     v.add_argument("--cache", help="reference cache folder (default $XDG_CACHE_HOME/layerbvh/references)")
     v.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb, cuda_ad_rgb)")
     v.add_argument("--no-progress", action="store_true")

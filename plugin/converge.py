@@ -38,7 +38,7 @@ class Config:
 
     name: str
     traversal: str | None = None  # None: stock path
-    treelet_height: int = 4
+    treelet_height: int = 0  # set by parse_configs
     build_s: float = 0.0
     first_render_s: float = 0.0
     compile_s: float = 0.0
@@ -69,7 +69,7 @@ def parse_configs(text: str) -> list[Config]:
             cfg = Config(mode, traversal=None if mode == "stock" else EMBREE)
         elif mode in layerbvh.TRACE_MODES:
             try:
-                h = layerbvh.check_param("treelet_height", int(height) if height else 4)
+                h = layerbvh.check_param("treelet_height", int(height) if height else layerbvh.DEFAULT_TREELET_HEIGHT)
             except ValueError as e:
                 raise ConvergeError(f"--configs: treelet height in {item!r}: {e}") from None
             plain = mode == "per_ray" or (mode == "auto" and not height)

@@ -120,7 +120,7 @@ class LayerBVHPathTracer:
     as in ``path``; ``traversal`` (``auto`` | ``per_ray`` | ``layer_sorted`` | ``layer_unsorted``
     | ``embree``, default ``auto``: per ray batch, the faster of per_ray and layer_sorted, timed
     once per kind of batch; ``embree``: this loop with Mitsuba's own queries, the control that
-    isolates the traversal), ``treelet_height`` (4), ``leaf_size`` (4), ``stats`` (false:
+    isolates the traversal), ``treelet_height`` (8), ``leaf_size`` (4), ``stats`` (false:
     collect traversal work counts), ``adaptive`` (true: leave out what the scene does not need),
     ``batch_rays`` (2^20: rays traced per batch; bounds the traversal's work memory).
 
@@ -137,8 +137,8 @@ class LayerBVHPathTracer:
         self.rr_depth = props.get("rr_depth", 5)
         self.hide_emitters = props.get("hide_emitters", False)
         self.traversal = props.get("traversal", "auto")
-        self.treelet_height = props.get("treelet_height", 4)
-        self.leaf_size = props.get("leaf_size", 4)
+        self.treelet_height = props.get("treelet_height", layerbvh.DEFAULT_TREELET_HEIGHT)
+        self.leaf_size = props.get("leaf_size", layerbvh.DEFAULT_LEAF_SIZE)
         self.stats = props.get("stats", False)
         self.adaptive = props.get("adaptive", True)
         self.batch_rays = props.get("batch_rays", layerbvh.BATCH_RAYS)

@@ -134,12 +134,13 @@ def _distinct_kernels(scene, integ) -> int:
 def test_kernels_do_not_multiply_with_path_depth(traversal, loop):
     scene = testing.load(SCENES / "cbox.xml", (32, 32))
     counts = {}
-    for depth in (4, 16):
-        integ = mi.load_dict({"type": "layerbvh", "traversal": traversal, "max_depth": depth})
+    for depth in (4, 16, 48):
+        integ = mi.load_dict({"type": "layerbvh", "traversal": traversal, "max_depth": depth, "treelet_height": 2})
         counts[depth] = _distinct_kernels(scene, integ)
         assert integ.last_stats["loop"] == loop
-    # A bounce launches the same kernels whatever its number; a few data-dependent ones (the
-    # per-ray tail of nearly finished wavefront steps) may appear only on longer paths.
-    assert counts[16] <= counts[4] + 8, counts
+    # A bounce launches the same kernels whatever its number. The first bounces differ a little
+    # (state that starts as a literal, Russian roulette from rr_depth on), so depth 16 may add a
+    # few over depth 4, but from there on the count must stay put.
+    assert counts[16] <= counts[4] + 12 and counts[48] <= counts[16] + 2, counts
     if loop == "megakernel":
-        assert counts[16] <= 4, f"one kernel per render (plus film and sampler set-up): {counts}"
+        assert counts[48] <= 4, f"one kernel per render (plus film and sampler set-up): {counts}"

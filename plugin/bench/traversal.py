@@ -27,7 +27,7 @@ from . import meshes
 DEFAULT_MESH = SCENES / "meshes" / "bunny.ply"
 RAY_KINDS = ("coherent", "incoherent")
 LAYER_MODES = ("layer_sorted", "layer_unsorted")
-AUTO_HEIGHT = 4  # the integrator's default treelet height
+AUTO_HEIGHT = layerbvh.DEFAULT_TREELET_HEIGHT  # the integrator's default
 MIB = 1 << 20
 
 
