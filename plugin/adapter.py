@@ -173,9 +173,10 @@ class SceneTracer:
         pi = dr.zeros(mi.PreliminaryIntersection3f, dr.width(ray.o))
         pi.t = dr.select(hit, mi.Float(hits.t), dr.inf)
         pi.prim_uv = mi.Point2f(mi.Float(hits.u), mi.Float(hits.v))
-        gid = dr.select(hit, mi.UInt32(hits.prim), 0)
-        pi.prim_index = dr.gather(mi.UInt32, self.tri_local, gid, hit)
-        pi.shape_index = dr.gather(mi.UInt32, self.tri_shape, gid, hit)
+        if self.geometry.triangle_count:  # (Dr.Jit refuses to gather from an empty array)
+            gid = dr.select(hit, mi.UInt32(hits.prim), 0)
+            pi.prim_index = dr.gather(mi.UInt32, self.tri_local, gid, hit)
+            pi.shape_index = dr.gather(mi.UInt32, self.tri_shape, gid, hit)
         for index, shape in self.geometry.analytic:
             api = shape.ray_intersect_preliminary(ray, 0, active)
             closer = active & api.is_valid() & (api.t < pi.t)
@@ -184,7 +185,8 @@ class SceneTracer:
             pi.prim_index = dr.select(closer, api.prim_index, pi.prim_index)
             pi.shape_index = dr.select(closer, index, pi.shape_index)
             hit |= closer
-        pi.shape = dr.gather(mi.ShapePtr, self.scene.shapes_dr(), pi.shape_index, hit)
+        if self.scene.shapes():
+            pi.shape = dr.gather(mi.ShapePtr, self.scene.shapes_dr(), pi.shape_index, hit)
         pi.t = dr.select(hit, pi.t, dr.inf)
         if hasattr(pi, "valid"):
             pi.valid = hit

@@ -9,8 +9,15 @@ import numpy as np
 
 import layerbvh
 
-from .render import UserError, load_scene, path_props, render_passes, scene_spp, timed_render, use_variant, write_exr
+from . import atomic
+from .render import (UserError, check_memory, load_integrator, load_scene, path_settings, render_passes, scene_spp, timed_render,
+                     use_variant, write_exr)
 
+
+
+AS_PATH_HELP = ("the scene's integrator is not path (volpath, direct, a moment/aov wrapper, ...): render both sides "
+                "with path anyway, with the settings read from it where it has them (without this, such a scene "
+                "is refused)")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -27,7 +34,9 @@ def _parser() -> argparse.ArgumentParser:
                              "the control) (default auto)")
         sp.add_argument("--treelet-height", type=int, default=layerbvh.DEFAULT_TREELET_HEIGHT)
         sp.add_argument("--leaf-size", type=int, default=layerbvh.DEFAULT_LEAF_SIZE)
-        sp.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb, cuda_ad_rgb)")
+        sp.add_argument("--variant", default="llvm_ad_rgb",
+                        help="Mitsuba variant: any llvm_* or cuda_* (default %(default)s)")
+        sp.add_argument("--as-path", action="store_true", help=AS_PATH_HELP)
         sp.add_argument("--no-progress", action="store_true")
 
     r = sub.add_parser("render", help="render with the layerbvh integrator to an EXR")
@@ -42,29 +51,43 @@ def _parser() -> argparse.ArgumentParser:
     v.add_argument("--budget", type=float, required=True, help="seconds of rendering per configuration "
                    "(BVH build, compile and the reference are timed separately)")
     v.add_argument("--out", required=True, help="output folder (convergence.csv/.json/.png/.md)")
-    v.add_argument("--configs", default="stock,per_ray,layer_sorted:4",
-                   help="comma list: stock, auto, per_ray, layer_sorted:H, layer_unsorted:H (default %(default)s)")
+    v.add_argument("--configs", default="stock,embree,per_ray,layer_sorted",
+                   help="comma list: stock, embree (our loop, Mitsuba's queries), auto, per_ray, layer_sorted[:H], "
+                        "layer_unsorted[:H] (default %(default)s)")
     v.add_argument("--ref-spp", type=int, default=4096, help="spp of the stock reference (default %(default)s)")
     v.add_argument("--max-spp", type=int, help="stop doubling here even within budget (default ref spp / 16)")
     v.add_argument("--res", type=int, nargs=2, metavar=("W", "H"), help="film resolution (default: the scene's)")
     v.add_argument("--leaf-size", type=int, default=layerbvh.DEFAULT_LEAF_SIZE)
     v.add_argument("--cache", help="reference cache folder (default $XDG_CACHE_HOME/layerbvh/references)")
-    v.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb, cuda_ad_rgb)")
+    v.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant: any llvm_* or cuda_* (default %(default)s)")
+    v.add_argument("--as-path", action="store_true", help=AS_PATH_HELP)
     v.add_argument("--no-progress", action="store_true")
     return p
 
 
 def _check_args(args):
-    if not Path(args.scene).is_file():
+    scene = Path(args.scene)
+    if scene.is_dir():
+        raise UserError(f"scene {args.scene} is a directory, not an XML file")
+    if not scene.is_file():
         raise UserError(f"scene file not found: {args.scene}")
+    if args.res is not None and min(args.res) < 1:
+        raise UserError(f"--res must be positive, got {args.res[0]} {args.res[1]}")
+    # Outputs are checked before any work: a run never renders for minutes to fail on its output.
+    if args.command == "render":
+        if not args.output.endswith(".exr"):
+            raise UserError(f"-o must name an .exr file, got {args.output}")
+        problem = atomic.check_output_file(args.output)
+    else:
+        from .converge import OUTPUT_MARKER
+        from .report import REPORT_MARKER
+        problem = atomic.check_output_folder(args.out, REPORT_MARKER if args.command == "compare" else OUTPUT_MARKER)
+    if problem:
+        raise UserError(problem)
     if args.command == "converge":
-        if args.res is not None and min(args.res) < 1:
-            raise UserError(f"--res must be positive, got {args.res[0]} {args.res[1]}")
         return
     if args.spp is not None and args.spp < 1:
         raise UserError(f"--spp must be >= 1, got {args.spp}")
-    if args.res is not None and min(args.res) < 1:
-        raise UserError(f"--res must be positive, got {args.res[0]} {args.res[1]}")
     from .integrator import check_settings
     try:
         check_settings(max_depth=-1, rr_depth=5, traversal=args.traversal, treelet_height=args.treelet_height,
@@ -74,20 +97,29 @@ def _check_args(args):
         raise UserError(f"--{name.replace('_', '-')} {rule}") from None
 
 
+def _check_memory(scene, spp: int, integ) -> None:
+    """Refuse (one line) a render that would not fit in memory, before it starts."""
+    size = scene.sensors()[0].film().crop_size()
+    tracer = integ.tracer(scene)
+    work = 0
+    if tracer is not None:
+        st = tracer.bvh.stats
+        work = st.total_bytes + min(int(size[0]) * int(size[1]) * spp, tracer.bvh.batch_rays) * (st.depth * 8 + 150)
+    check_memory(int(size[0]), int(size[1]), spp, "megakernel" if integ.megakernel(tracer) else "wavefront", work)
+
+
 def _ours(mi, args, props, stats=False, traversal=None):
     d = {"type": "layerbvh", "traversal": traversal or args.traversal, "treelet_height": args.treelet_height,
          "leaf_size": args.leaf_size, "stats": stats}
     d.update({k: v for k, v in props.items()})
-    return mi.load_dict(d)
+    return load_integrator(mi, d)
 
 
 def cmd_render(mi, args) -> int:
-    if not args.output.endswith(".exr"):
-        raise UserError(f"-o must name an .exr file, got {args.output}")
     scene = load_scene(mi, args.scene, args.res)
     spp = args.spp or scene_spp(scene)
-    integ = _ours(mi, args, path_props(mi, scene))
-    integ.tracer(scene)  # build the BVH (and refuse unsupported shapes) before rendering
+    integ = _ours(mi, args, path_settings(mi, scene, args.as_path).props)
+    _check_memory(scene, spp, integ)  # builds the BVH (and refuses unsupported shapes) first
     img, secs = render_passes(mi, scene, integ, spp, args.seed, "layerbvh", not args.no_progress)
     if not np.isfinite(img).all():
         raise UserError(f"render produced {int((~np.isfinite(img)).any(-1).sum())} NaN/Inf pixels; nothing written")
@@ -107,10 +139,11 @@ def cmd_compare(mi, args) -> int:
     from .report import write_report
     scene = load_scene(mi, args.scene, args.res)
     spp = args.spp or scene_spp(scene)
-    props = path_props(mi, scene)
-    stock = mi.load_dict({"type": "path", **props})
+    path = path_settings(mi, scene, args.as_path)
+    props = path.props
+    stock = load_integrator(mi, {"type": "path", **props})
     ours = _ours(mi, args, props)
-    ours.tracer(scene)  # build the BVH (and refuse unsupported shapes) before rendering anything
+    _check_memory(scene, spp, ours)  # builds the BVH (and refuses unsupported shapes) first
     progress = not args.no_progress
     # Timed renders without work counters: what a user's render costs. Our loop with Embree's
     # queries (the control) splits our time into the loop's share and the traversal's.
@@ -134,6 +167,8 @@ def cmd_compare(mi, args) -> int:
     info = {
         "scene": str(args.scene), "spp": spp, "resolution": [int(ou.image.shape[1]), int(ou.image.shape[0])],
         "seed": args.seed, "variant": mi.variant(), "integrator": props,
+        "scene_integrator": path.scene_integrator, "compared_as": "path" + (" (--as-path)" if path.as_path else ""),
+        **({"compared_as_note": path.note} if path.note else {}),
         "stock": side(st),
         "ours": {**side(ou), "calibration_s": ou.calibration_s, "build_s": run.get("build_s", 0.0),
                  "kernel_load_s": bvh.get("kernel_load_s", 0.0), "loop": run.get("loop"),
@@ -162,6 +197,14 @@ def cmd_compare(mi, args) -> int:
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
+    try:
+        return _run(args)
+    except KeyboardInterrupt:  # Ctrl-C: outputs are written whole at the end, so nothing is left
+        print("layerbvh: interrupted; nothing written", file=sys.stderr)
+        return 130
+
+
+def _run(args) -> int:
     try:
         _check_args(args)
         mi = use_variant(args.variant)

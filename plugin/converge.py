@@ -15,11 +15,15 @@ from pathlib import Path
 
 import numpy as np
 
+import layerbvh
+
 from . import atomic, metrics
-from .render import cache_dir, timed_render
+from .render import cache_dir, load_integrator, timed_render
 
 REFERENCE_SEED = 100_000  # the reference's passes use seeds 791.9M + k, far from any config's
 EXTRAPOLATION_SLACK = 1.25  # a fit read within 25% of the rendered time range counts as measured
+MAX_EXTRAPOLATION = 2.0  # a fit is never read further than this factor outside the rendered times
+MIN_FIT_R2 = 0.9  # a log-log fit below this R² gives no ratio (its points do not follow a power law)
 MIN_FIT_SPP = 4  # below this, fixed per-render overhead bends the time axis; fits skip it when they can
 METRICS = ("rel_mse", "flip", "delta_e2000")
 CSV_COLUMNS = ("config", "spp", "seconds", "rel_mse", "flip", "delta_e2000", "seed")
@@ -38,7 +42,7 @@ class Config:
 
     name: str
     traversal: str | None = None  # None: stock path
-    treelet_height: int = 0  # set by parse_configs
+    treelet_height: int = layerbvh.DEFAULT_TREELET_HEIGHT
     build_s: float = 0.0
     first_render_s: float = 0.0
     compile_s: float = 0.0
@@ -55,7 +59,6 @@ def parse_configs(text: str) -> list[Config]:
     """`stock,embree,per_ray,layer_sorted:4,layer_sorted:6`: names with an optional treelet height
     (`embree`: the layerbvh integrator's loop with Mitsuba's queries, the control that isolates
     the traversal)."""
-    import layerbvh
 
     from .integrator import EMBREE
     out, seen = [], set()
@@ -130,21 +133,30 @@ def reference_key(scene: Path, settings: dict) -> str:
 
 
 def reference(mi, scene, scene_path: Path, settings: dict, cache: Path, progress: bool) -> tuple[np.ndarray, dict]:
-    """The stock reference image: read from the cache when its key matches, else rendered and stored."""
+    """The stock reference image: read from the cache when its key and the EXR's SHA-256 match,
+    else rendered and stored (a damaged or replaced cache file is rendered again, with a notice)."""
     from .render import render_passes, write_exr
     key = reference_key(scene_path, settings)
     exr, meta = cache / f"{key[:24]}.exr", cache / f"{key[:24]}.json"
     if exr.is_file() and meta.is_file():
-        info = json.loads(meta.read_text())
-        if info.get("key") == key:
-            img = np.array(mi.Bitmap(str(exr)), np.float32)[:, :, :3]
-            return img, {**info, "path": str(exr), "cached": True}
-    stock = mi.load_dict({"type": "path", **settings["integrator"]})
+        try:
+            info = json.loads(meta.read_text())
+            data = exr.read_bytes()
+            if info.get("key") == key and hashlib.sha256(data).hexdigest() == info.get("exr_sha256"):
+                img = np.array(mi.Bitmap(str(exr)), np.float32)[:, :, :3]
+                if list(img.shape[:2]) == list(settings["resolution"][::-1]):
+                    return img, {**info, "path": str(exr), "cached": True}
+            problem = "does not match its checksum" if info.get("key") == key else "belongs to other settings"
+        except (OSError, ValueError, RuntimeError) as e:
+            problem = f"cannot be read ({str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__})"
+        print(f"converge: cached reference {exr} {problem}; rendering it again", file=sys.stderr)
+    stock = load_integrator(mi, {"type": "path", **settings["integrator"]})
     img, secs = render_passes(mi, scene, stock, settings["ref_spp"], REFERENCE_SEED, "reference (stock)", progress)
     if not np.isfinite(img).all():
         raise ConvergeError("the stock reference has NaN/Inf pixels; nothing cached")
-    info = {"key": key, "settings": settings, "render_s": secs, "scene": str(scene_path)}
     write_exr(exr, img)
+    info = {"key": key, "settings": settings, "render_s": secs, "scene": str(scene_path),
+            "exr_sha256": hashlib.sha256(exr.read_bytes()).hexdigest()}
     atomic.write_text(meta, json.dumps(info, indent=1))  # written last: its presence means the EXR is whole
     return img, {**info, "path": str(exr), "cached": False}
 
@@ -159,8 +171,8 @@ def _seed(config_index: int, level: int) -> int:
 
 def _integrator(mi, cfg: Config, props: dict, leaf_size: int):
     if cfg.stock:
-        return mi.load_dict({"type": "path", **props})
-    return mi.load_dict({"type": "layerbvh", "traversal": cfg.traversal, "treelet_height": cfg.treelet_height,
+        return load_integrator(mi, {"type": "path", **props})
+    return load_integrator(mi, {"type": "layerbvh", "traversal": cfg.traversal, "treelet_height": cfg.treelet_height,
                          "leaf_size": leaf_size, **props})
 
 
@@ -168,8 +180,8 @@ def run_config(mi, scene, cfg: Config, index: int, props: dict, ref: np.ndarray,
                max_spp: int, leaf_size: int, bar) -> None:
     """Render at doubling spp while the next render (predicted: twice the last) fits in the budget."""
     integ = _integrator(mi, cfg, props, leaf_size)
-    if not cfg.stock:
-        cfg.build_s = integ.tracer(scene).build_s  # built once here, outside every timed render
+    tracer = None if cfg.stock else integ.tracer(scene)  # built once here, outside every timed render
+    cfg.build_s = tracer.build_s if tracer is not None else 0.0
     # Warm-up with its own seed: most kernels compile here; any later compile is subtracted too.
     warm = timed_render(mi, scene, integ, 1, _seed(index, -1))
     cfg.compile_s, cfg.calibration_s = warm.compile_s, warm.calibration_s
@@ -202,14 +214,18 @@ def _fit_points(points: list, axis: str) -> list:
     return big if len(big) >= 3 else points
 
 
-def loglog_fit(x, y) -> tuple[float, float] | None:
-    """(intercept, slope) of log y = a + b log x by least squares; None with fewer than 2 points."""
+def loglog_fit(x, y) -> tuple[float, float, float] | None:
+    """(intercept, slope, R²) of log y = a + b log x by least squares; None with fewer than 2 points."""
     x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
     ok = (x > 0) & (y > 0)
     if ok.sum() < 2 or np.ptp(np.log(x[ok])) == 0:
         return None
-    b, a = np.polyfit(np.log(x[ok]), np.log(y[ok]), 1)
-    return float(a), float(b)
+    lx, ly = np.log(x[ok]), np.log(y[ok])
+    b, a = np.polyfit(lx, ly, 1)
+    resid = ly - (a + b * lx)
+    spread = float(np.sum((ly - ly.mean()) ** 2))
+    r2 = 1.0 - float(np.sum(resid ** 2)) / spread if spread > 0 else 1.0
+    return float(a), float(b), r2
 
 
 def fits(cfg: Config) -> dict:
@@ -219,7 +235,7 @@ def fits(cfg: Config) -> dict:
         for axis in ("spp", "seconds"):
             pts = _fit_points(cfg.points, axis)
             f = loglog_fit([p[axis] for p in pts], [p[m] for p in pts])
-            out[f"{m}_vs_{axis}"] = None if f is None else {"intercept": f[0], "slope": f[1]}
+            out[f"{m}_vs_{axis}"] = None if f is None else {"intercept": f[0], "slope": f[1], "r2": f[2]}
     return out
 
 
@@ -228,25 +244,38 @@ def equal_time_error_table(configs: list[Config]) -> dict:
     power law (relMSE vs seconds) and relative to stock when stock is among the configs.
 
     Common time: the longest render every configuration reached. Equal error: the relMSE stock
-    reached in its longest render (or the first config's, without stock). A value outside the
-    times a configuration actually rendered is an extrapolation of its fit and flagged as one."""
+    reached in its longest render (or the first config's, without stock). A read of a fit is
+    given only where it can be trusted: the fit's log-log R² is at least MIN_FIT_R2 and the read
+    lies within MAX_EXTRAPOLATION of the times that configuration rendered; otherwise the value
+    is None with the reason. Reads outside the rendered times (within that factor) are flagged."""
     base = next((c for c in configs if c.stock), configs[0])
     t_common = min(max(p["seconds"] for p in c.points) for c in configs)
     e_target = min(base.points, key=lambda p: -p["seconds"])["rel_mse"]
     rows = {}
     for c in configs:
         f = c.fit["rel_mse_vs_seconds"]
-        if f is None or f["slope"] >= 0:
-            rows[c.name] = {"rel_mse_at_equal_time": None, "seconds_to_equal_error": None}
-            continue
-        a, b = f["intercept"], f["slope"]
-        t_eq = math.exp((math.log(e_target) - a) / b)
         lo, hi = min(p["seconds"] for p in c.points), max(p["seconds"] for p in c.points)
-        inside = (lambda t: lo / EXTRAPOLATION_SLACK <= t <= hi * EXTRAPOLATION_SLACK)
-        rows[c.name] = {"rel_mse_at_equal_time": math.exp(a + b * math.log(t_common)),
-                        "seconds_to_equal_error": t_eq,
-                        "equal_time_extrapolated": not inside(t_common),
-                        "equal_error_extrapolated": not inside(t_eq)}
+        row = {"rel_mse_at_equal_time": None, "seconds_to_equal_error": None}
+        if f is None or f["slope"] >= 0:
+            row["why_not"] = "no falling fit (too few points, or error does not fall with time)"
+        elif f["r2"] < MIN_FIT_R2:
+            row["why_not"] = f"fit R² {f['r2']:.2f} < {MIN_FIT_R2}: the points do not follow a power law"
+        else:
+            a, b = f["intercept"], f["slope"]
+            t_eq = math.exp((math.log(e_target) - a) / b)
+            reads = {"rel_mse_at_equal_time": (t_common, math.exp(a + b * math.log(t_common)), "equal_time"),
+                     "seconds_to_equal_error": (t_eq, t_eq, "equal_error")}
+            why = []
+            for key, (t, value, flag) in reads.items():
+                if t < lo / MAX_EXTRAPOLATION or t > hi * MAX_EXTRAPOLATION:
+                    why.append(f"{key} would read the fit at {t:.3g} s, beyond {MAX_EXTRAPOLATION:g}x the rendered "
+                               f"{lo:.3g}-{hi:.3g} s")
+                    continue
+                row[key] = value
+                row[f"{flag}_extrapolated"] = not lo / EXTRAPOLATION_SLACK <= t <= hi * EXTRAPOLATION_SLACK
+            if why:
+                row["why_not"] = "; ".join(why)
+        rows[c.name] = row
     ref = rows[base.name]
     for r in rows.values():
         for k, rel in (("rel_mse_at_equal_time", "error_vs_base"), ("seconds_to_equal_error", "time_vs_base")):
@@ -255,7 +284,7 @@ def equal_time_error_table(configs: list[Config]) -> dict:
 
 
 def _g(x, spec=".3g"):
-    return "–" if x is None else format(x, spec)
+    return "n/a" if x is None else format(x, spec)
 
 
 def table_markdown(configs: list[Config], table: dict) -> str:
@@ -264,10 +293,13 @@ def table_markdown(configs: list[Config], table: dict) -> str:
              f"{base}'s relMSE {table['equal_error_rel_mse']:.3g}, from each configuration's fitted "
              f"log-log line (relMSE vs seconds); ratios are against {base}. Render times exclude "
              f"kernel compilation (Dr.Jit's kernel history), which is listed with the BVH build. "
-             f"* = extrapolated beyond the times that configuration rendered.", "",
+             f"* = read outside the times that configuration rendered (never beyond "
+             f"{MAX_EXTRAPOLATION:g}x); n/a = no trustworthy read (reason below; fits with R² < {MIN_FIT_R2} "
+             f"give none).", "",
              "| config | build s | compile s | spp reached | slope vs spp | relMSE at equal time | × " + base
              + " | seconds to equal error | × " + base + " |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    notes = []
     for c in configs:
         r = table["rows"][c.name]
         slope = c.fit["rel_mse_vs_spp"]
@@ -276,7 +308,9 @@ def table_markdown(configs: list[Config], table: dict) -> str:
                      f"| {_g(r['error_vs_base'], '.2f')}{'*' if r.get('equal_time_extrapolated') else ''} "
                      f"| {_g(r['seconds_to_equal_error'])} "
                      f"| {_g(r['time_vs_base'], '.2f')}{'*' if r.get('equal_error_extrapolated') else ''} |")
-    return "\n".join(lines) + "\n"
+        if r.get("why_not"):
+            notes.append(f"- {c.name}: n/a where shown – because {r['why_not']}")
+    return "\n".join(lines + ([""] + notes if notes else [])) + "\n"
 
 
 # -- outputs ----------------------------------------------------------------------------------------
@@ -293,28 +327,39 @@ def csv_text(configs: list[Config]) -> str:
 
 
 def plot_png(configs: list[Config], title: str) -> bytes:
-    """Log-log error vs seconds, one line per configuration, with the ideal Monte Carlo slopes."""
+    """Log-log error vs seconds per metric: each configuration's renders as points in time order,
+    labelled with their spp, the fitted line the table's numbers come from (dashed), and the
+    ideal Monte Carlo slope from each configuration's first point (dotted)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.6))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.8))
     labels = {"rel_mse": ("relMSE", -1.0), "flip": ("mean ꟻLIP", -0.5), "delta_e2000": ("mean ΔE2000", -0.5)}
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for ax, m in zip(axes, METRICS):
         name, ideal = labels[m]
-        for c in configs:
-            ax.plot([p["seconds"] for p in c.points], [p[m] for p in c.points], "o-", label=c.name, ms=4)
-        # The ideal rate through the slowest-converging first point, for reference.
-        anchor = max((c.points[0] for c in configs), key=lambda p: p[m])
-        t = np.array([min(p["seconds"] for c in configs for p in c.points),
-                      max(p["seconds"] for c in configs for p in c.points)])
-        ax.plot(t, anchor[m] * (t / anchor["seconds"]) ** ideal, "k--", lw=1, label=f"slope {ideal:g}")
+        for i, c in enumerate(configs):
+            color = colors[i % len(colors)]
+            pts = sorted(c.points, key=lambda p: p["seconds"])
+            t = np.array([p["seconds"] for p in pts])
+            ax.plot(t, [p[m] for p in pts], "o", color=color, ms=4, label=c.name)
+            for p in pts:
+                ax.annotate(str(p["spp"]), (p["seconds"], p[m]), textcoords="offset points", xytext=(3, 3),
+                            fontsize=6, color=color)
+            f = c.fit.get(f"{m}_vs_seconds")
+            if f is not None:
+                tt = np.geomspace(t.min(), t.max(), 20)
+                ax.plot(tt, np.exp(f["intercept"] + f["slope"] * np.log(tt)), "--", color=color, lw=1)
+            first = min(pts, key=lambda p: p["seconds"])
+            ax.plot(t, first[m] * (t / first["seconds"]) ** ideal, ":", color=color, lw=1)
+        ax.plot([], [], "k--", lw=1, label="fitted line")
+        ax.plot([], [], "k:", lw=1, label=f"ideal slope {ideal:g}")
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel("render time per image (s)")
+        ax.set_xlabel("render time per image (s); labels: spp")
         ax.set_ylabel(name)
         ax.grid(True, which="both", alpha=0.3)
-    for ax in axes:
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=7)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     buf = io.BytesIO()
@@ -323,12 +368,16 @@ def plot_png(configs: list[Config], title: str) -> bytes:
     return buf.getvalue()
 
 
+OUTPUT_MARKER = "convergence.json"  # the file that makes a folder a converge output
+
+
 def write_outputs(out: Path, configs: list[Config], doc: dict, table_md: str, title: str) -> None:
-    """Every file written whole (temporary sibling, then rename); the JSON last."""
-    atomic.write_text(out / "convergence.csv", csv_text(configs))
-    atomic.write_bytes(out / "convergence.png", plot_png(configs, title))
-    atomic.write_text(out / "convergence.md", f"# Error against run time\n\n{title}\n\n{table_md}")
-    atomic.write_text(out / "convergence.json", json.dumps(doc, indent=1))
+    """The output folder, written whole (atomic.atomic_folder: the folder's files are one run's)."""
+    with atomic.atomic_folder(out, OUTPUT_MARKER) as tmp:
+        atomic.write_text(tmp / "convergence.csv", csv_text(configs))
+        atomic.write_bytes(tmp / "convergence.png", plot_png(configs, title))
+        atomic.write_text(tmp / "convergence.md", f"# Error against run time\n\n{title}\n\n{table_md}")
+        atomic.write_text(tmp / OUTPUT_MARKER, json.dumps(doc, indent=1))
 
 
 # -- the command ------------------------------------------------------------------------------------
@@ -338,7 +387,7 @@ def run(mi, args) -> dict:
     """`layerbvh converge`: returns the JSON document it writes."""
     from tqdm import tqdm
 
-    from .render import load_scene, path_props
+    from .render import load_scene, path_settings
     configs = parse_configs(args.configs)
     if args.budget <= 0:
         raise ConvergeError(f"--budget must be > 0 seconds, got {args.budget}")
@@ -352,7 +401,8 @@ def run(mi, args) -> dict:
     t0 = time.perf_counter()
     scene = load_scene(mi, str(scene_path), args.res)
     load_s = time.perf_counter() - t0
-    props = path_props(mi, scene)
+    path = path_settings(mi, scene, args.as_path)
+    props = path.props
     size = [int(x) for x in scene.sensors()[0].film().crop_size()]
     settings = {"ref_spp": args.ref_spp, "resolution": size, "variant": mi.variant(), "mitsuba": mi.__version__,
                 "integrator": props, "seed": REFERENCE_SEED}
@@ -368,10 +418,12 @@ def run(mi, args) -> dict:
             bar.total = bar.n + (len(configs) - i - 1) * (int(math.log2(max_spp)) + 1)
     table = equal_time_error_table(configs)
     title = (f"{scene_path.name}: {size[0]}x{size[1]}, budget {args.budget:g} s per configuration, "
-             f"reference stock path at {args.ref_spp} spp, {mi.variant()}")
+             f"reference stock path at {args.ref_spp} spp, {mi.variant()}"
+             + (f"; {path.note}" if path.note else ""))
     doc = {
         "scene": str(scene_path), "resolution": size, "variant": mi.variant(), "budget_s": args.budget,
         "max_spp": max_spp, "scene_load_s": load_s, "integrator": props,
+        "scene_integrator": path.scene_integrator, "compared_as": "path" + (" (--as-path)" if path.as_path else ""),
         "reference": {k: ref_info[k] for k in ("path", "key", "cached", "render_s")} | {"spp": args.ref_spp},
         "configs": [{"name": c.name, "traversal": c.traversal or "stock (Embree)", "treelet_height":
                      None if c.stock or c.traversal == "per_ray" else c.treelet_height,

@@ -177,14 +177,11 @@ class LayerBVHPathTracer:
         tracer = self._state.tracer if self._state is not None else None
         return tracer.bvh.auto.calibration_s if tracer is not None else 0.0
 
-    def _plan_auto(self, state: SceneState, scene, sensor, spp: int) -> bool:
-        """auto: settle what it can before rendering, for each kind of batch the render traces
-        (camera and bounce rays: closest hit; shadow rays: any hit), each one ray per pixel
-        sample. True when every kind goes per_ray, so the render can be one megakernel."""
+    def _plan_auto(self, state: SceneState, rays: int) -> bool:
+        """auto: settle what it can before tracing, for each kind of batch the render traces
+        (camera and bounce rays: closest hit; shadow rays: any hit), `rays` each (one per pixel
+        sample). True when every kind goes per_ray, so the render can be one megakernel."""
         tracer = state.tracer
-        sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
-        size = sensor.film().crop_size()
-        rays = int(size[0]) * int(size[1]) * int(spp or sensor.sampler().sample_count())
         policy, treelets = tracer.bvh.auto, tracer.bvh.stats.treelets
         kinds = [(False, "camera"), (False, "bounce"), (True, "shadow")]
         modes = [policy.settle(any_hit, hint, min(rays, self.batch_rays), treelets) for any_hit, hint in kinds]
@@ -212,26 +209,30 @@ class LayerBVHPathTracer:
             return False
         return self.traversal == "per_ray" or (self.traversal == layerbvh.AUTO and self._auto_per_ray)
 
-    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
-        state = self.scene_state(scene)
-        tracer = state.tracer
-        if tracer is not None:
-            tracer.reset_counters()
+    # -- statistics of a render -----------------------------------------------------------------
+    # No `render` override: Mitsuba guards its render with a SIGINT handler, and a Python render
+    # calling the base render again would nest two of them, which loses Ctrl-C. `sample` runs
+    # once per render (JIT variants trace all of a pass's samples at once), so it brackets it.
+
+    def _begin(self, state: SceneState, rays: int) -> dict:
+        if state.tracer is not None:
+            state.tracer.reset_counters()
         self._vertices = 0
         if self.traversal == layerbvh.AUTO:
-            self._auto_per_ray = self._plan_auto(state, scene, sensor, spp)
-        cal0 = self.calibration_s()
-        t0 = time.perf_counter()
-        img = self._base.render(self, scene, sensor, seed, spp, develop, evaluate)
-        dr.eval(img)
-        total = time.perf_counter() - t0
+            self._auto_per_ray = self._plan_auto(state, rays)
+        return {"t0": time.perf_counter(), "calibration_s": self.calibration_s()}
+
+    def _finish(self, state: SceneState, start: dict, megakernel: bool) -> None:
+        """`last_stats` of this render (in the megakernel the work runs after `sample` returns, so
+        its times say nothing there and are None)."""
+        tracer = state.tracer
+        total = time.perf_counter() - start["t0"]
         if self.traversal == layerbvh.AUTO:
             self._keep_auto_choices(state)
         steps = tracer.trace_stats if tracer is not None else []
-        megakernel = self.megakernel(tracer)
         trace_s = None if megakernel else tracer.trace_s
         self.last_stats = {
-            "build_s": tracer.build_s if tracer is not None else 0.0, "render_s": total, "trace_s": trace_s,
+            "build_s": tracer.build_s if tracer is not None else 0.0, "trace_s": trace_s,
             "shading_s": None if megakernel else max(total - trace_s, 0.0), "queries": len(steps),
             "loop": "megakernel" if megakernel else "wavefront",
             "traversal": self.traversal, "treelet_height": self.treelet_height,
@@ -248,15 +249,15 @@ class LayerBVHPathTracer:
             "bounces": None if megakernel else self._vertices,
             "modes_used": dict(Counter(s.mode for s in steps)),
             "auto_choices": {} if tracer is None else dict(tracer.bvh.auto_choices),
-            "calibration_s": self.calibration_s() - cal0,
+            "calibration_s": self.calibration_s() - start["calibration_s"],
             "features": state.features.as_dict(),
         }
-        return img
 
     # -- one ray per sample: the path tracer ----------------------------------------------------
     def sample(self, scene, sampler, ray, medium=None, active=True):
         state = self.scene_state(scene)
         tracer = state.tracer
+        start = self._begin(state, dr.width(ray.o))
         megakernel = self.megakernel(tracer)
         if self.traversal == EMBREE:
             queries = EmbreeQueries(scene)
@@ -265,6 +266,7 @@ class LayerBVHPathTracer:
         n = dr.width(ray.o)
         active = mi.Bool(active) & dr.full(mi.Bool, True, n)
         if self.max_depth == 0:
+            self._finish(state, start, megakernel)
             return mi.Spectrum(0), mi.Bool(False), []
         ray = mi.Ray3f(ray)
         pi = queries.intersect(ray, active, hint="camera")
@@ -281,6 +283,7 @@ class LayerBVHPathTracer:
             (sampler, path), cond=lambda sampler, path: path.active,
             body=lambda sampler, path: self._vertex(scene, sampler, state.features, queries, path, megakernel),
             symbolic=megakernel, label="layerbvh path tracer")
+        self._finish(state, start, megakernel)
         return dr.select(path.valid, path.L, 0), path.valid, []
 
     def _vertex(self, scene, sampler, use: Features, queries, p: PathState, megakernel: bool):

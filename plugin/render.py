@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import sys
 import time
 from dataclasses import dataclass
@@ -14,6 +15,7 @@ from .atomic import atomic_path
 
 DEFAULT_VARIANT = "llvm_ad_rgb"  # Embree on the CPU, the same threads as our LLVM backend
 SPP_PER_PASS = 64  # a progress bar step; one pass (the exact seed) whenever spp <= this
+MAX_RAYS_PER_PASS = 1 << 24  # and at most this many camera rays per pass (512x512 at 64 spp)
 
 
 class UserError(Exception):
@@ -22,15 +24,20 @@ class UserError(Exception):
 
 def use_variant(variant: str | None = None):
     """Mitsuba with `variant` active (default: the active one, else DEFAULT_VARIANT), and the
-    `layerbvh` integrator registered for it."""
+    `layerbvh` integrator registered for it. Our traversal runs on Dr.Jit's JIT backends, so
+    scalar variants are refused, and CUDA ones where no CUDA device is usable."""
+    import drjit as dr
     import mitsuba as mi
     want = variant or mi.variant() or DEFAULT_VARIANT
+    if want not in mi.variants():
+        raise UserError(f"Mitsuba variant {want!r} is not available (choose one of {', '.join(mi.variants())})")
+    if not want.startswith(("llvm_", "cuda_")):
+        raise UserError(f"variant {want!r} is a scalar variant: layerbvh traces on Dr.Jit's JIT backends; choose an "
+                        f"llvm_* or cuda_* variant")
+    if want.startswith("cuda_") and not dr.has_backend(dr.JitBackend.CUDA):
+        raise UserError(f"variant {want!r} needs a CUDA device and none is usable here; choose an llvm_* variant")
     if mi.variant() != want:
-        try:
-            mi.set_variant(want)
-        except Exception:
-            raise UserError(f"Mitsuba variant {want!r} is not available (choose one of "
-                            f"{', '.join(mi.variants())})") from None
+        mi.set_variant(want)
     import layerbvh_mitsuba  # noqa: F401  (registers the integrator, also for later variants)
     return mi
 
@@ -67,46 +74,130 @@ def load_scene(mi, path: str, res=None, **params):
     return scene
 
 
+def load_integrator(mi, props: dict):
+    """`mi.load_dict(props)` for an integrator; a bad property is a UserError with Mitsuba's (or
+    our integrator's) last line."""
+    try:
+        return mi.load_dict(props)
+    except Exception as e:  # Mitsuba wraps a plugin constructor's error in a multi-line RuntimeError
+        raise UserError(f"integrator {props.get('type')}: {str(e).strip().splitlines()[-1]}") from None
+
+
 def signed_depth(value: int) -> int:
     """Mitsuba keeps max_depth as uint32, so -1 (infinite) reads back as 2^32 - 1: map it back."""
     return value - 2 ** 32 if value >= 2 ** 31 else value
 
 
-def path_props(mi, scene) -> dict:
-    """The scene's own integrator settings when it is a `path` (else path's defaults)."""
+# -- what the scene's integrator asks for -------------------------------------------------------------
+
+# Mitsuba class names of integrators and their plugin names (for messages and reports).
+INTEGRATOR_PLUGINS = {
+    "PathIntegrator": "path", "VolumetricPathIntegrator": "volpath", "VolumetricMISPathIntegrator": "volpathmis",
+    "DirectIntegrator": "direct", "AOVIntegrator": "aov", "MomentIntegrator": "moment",
+    "ParticleTracerIntegrator": "ptracer", "DepthIntegrator": "depth", "StokesIntegrator": "stokes",
+}
+
+
+def integrator_name(integ) -> str:
+    """The plugin name of a Mitsuba integrator object (`path`, `volpath`, `prb`, ...); wrappers
+    around a path tracer read `moment(path)`."""
+    cls = integ.class_name()
+    if cls not in INTEGRATOR_PLUGINS:  # Python integrators (prb, ...) report their base class
+        cls = str(integ).split("[", 1)[0].strip() or cls
+    name = INTEGRATOR_PLUGINS.get(cls, cls.removesuffix("Integrator").lower())
+    if name in ("moment", "aov") and "PathIntegrator[" in str(integ):
+        name += "(path)"
+    return name
+
+
+def _int_setting(text: str, key: str) -> int | None:
+    m = re.search(rf"\b{key}\s*=\s*(-?\d+)", text)
+    return signed_depth(int(m.group(1))) if m else None
+
+
+@dataclass
+class PathSettings:
+    """The `path` settings both sides of a comparison render with, and where they come from.
+
+    `props`: max_depth, rr_depth, hide_emitters (only those the scene sets). `scene_integrator`:
+    the scene's integrator (`integrator_name`). `as_path`: the scene's integrator is not `path`
+    and the user asked to compare it as one (`--as-path`); `note` says what was taken from it."""
+
+    props: dict
+    scene_integrator: str
+    as_path: bool = False
+    note: str = ""
+
+
+def path_settings(mi, scene, as_path: bool = False) -> PathSettings:
+    """The scene's own path settings (max_depth, rr_depth, hide_emitters, read from its integrator
+    object). A scene whose integrator is not `path` is refused (UserError) unless `as_path`:
+    then its settings are read where it has them (a wrapper's inner path, volpath's depths)."""
     integ = scene.integrator()
-    out = {}
-    if integ is not None and integ.class_name() == "PathIntegrator":
-        for key in ("max_depth", "rr_depth", "hide_emitters"):
-            try:
-                out[key] = mi.traverse(integ)[key]
-            except Exception:
-                pass
-        # Not traversable in every version: read from the string form as a fallback.
-        text = str(integ)
-        for key in ("max_depth", "rr_depth"):
-            if key not in out:
-                for line in text.splitlines():
-                    if line.strip().startswith(key):
-                        out[key] = int(line.split("=")[1].strip().rstrip(","))
-        for key in ("max_depth", "rr_depth"):
-            if key in out:
-                out[key] = signed_depth(int(out[key]))
-    return out
+    if integ is None:
+        return PathSettings({}, "path")
+    name = integrator_name(integ)
+    text = str(integ)
+    if name != "path" and not as_path:
+        raise UserError(f"the scene's integrator is {name}, not path: layerbvh renders with a path tracer, so "
+                        f"both sides would render something else than the scene asks; pass --as-path to compare "
+                        f"them rendered with path")
+    inner = text[text.index("PathIntegrator["):] if name != "path" and "PathIntegrator[" in text else text
+    props = {k: v for k in ("max_depth", "rr_depth") if (v := _int_setting(inner, k)) is not None}
+    if name == "path" or name == "volpath":
+        props["hide_emitters"] = bool(integ.hide_emitters)
+    note = ""
+    if name != "path":
+        shown = ", ".join(f"{k}={v}" for k, v in props.items()) or "path's defaults"
+        note = f"the scene's integrator is {name}; both sides rendered with path ({shown})"
+    return PathSettings(props, name, as_path=name != "path", note=note)
+
+
+def path_props(mi, scene) -> dict:
+    """The scene's path settings, comparing any integrator as path (tools that say so themselves)."""
+    return path_settings(mi, scene, as_path=True).props
+
+
+def passes_for(pixels: int, spp: int) -> tuple[int, int]:
+    """(passes, spp per pass) for `spp` samples of a `pixels`-pixel film: passes of at most
+    SPP_PER_PASS spp and MAX_RAYS_PER_PASS rays (camera rays of one pass are traced together, so
+    the pass size bounds the render's memory); one pass whenever spp fits."""
+    per_pass = max(1, min(SPP_PER_PASS, MAX_RAYS_PER_PASS // max(pixels, 1)))
+    return max(1, math.ceil(spp / per_pass)), per_pass
+
+
+def _check_interrupt(integrator, error: BaseException | None = None) -> None:
+    """Raise KeyboardInterrupt if Ctrl-C reached the last render. Mitsuba catches SIGINT during a
+    render, cancels it (the integrator's `should_stop()` is then True) and passes the signal on to
+    Python, whose KeyboardInterrupt may surface wrapped in a RuntimeError (dr.custom)."""
+    cause = error
+    while cause is not None:
+        if isinstance(cause, KeyboardInterrupt):
+            raise KeyboardInterrupt from None
+        cause = cause.__cause__ or cause.__context__
+    if getattr(integrator, "should_stop", lambda: False)():
+        raise KeyboardInterrupt
 
 
 def render_passes(mi, scene, integrator, spp: int, seed: int, label: str, progress: bool):
-    """Render in passes of SPP_PER_PASS with a progress bar; a single pass uses `seed` itself."""
+    """Render in passes (`passes_for`) with a progress bar; a single pass uses `seed` itself.
+    Ctrl-C stops it after the pass it arrives in (KeyboardInterrupt): no partial image."""
     import drjit as dr
     from tqdm import tqdm
-    passes = max(1, math.ceil(spp / SPP_PER_PASS))
+    size = scene.sensors()[0].film().crop_size()
+    passes, per_pass = passes_for(int(size[0]) * int(size[1]), spp)
     acc, done = None, 0
     t0 = time.perf_counter()
     with tqdm(total=spp, desc=label, unit="spp", disable=not progress, leave=False, file=sys.stderr) as bar:
         for k in range(passes):
-            n = min(SPP_PER_PASS, spp - done) if passes > 1 else spp
-            img = mi.render(scene, integrator=integrator, spp=n, seed=pass_seed(seed, k, passes))
-            dr.eval(img)
+            n = min(per_pass, spp - done)
+            try:
+                img = mi.render(scene, integrator=integrator, spp=n, seed=pass_seed(seed, k, passes))
+                dr.eval(img)
+            except RuntimeError as e:
+                _check_interrupt(integrator, e)
+                raise
+            _check_interrupt(integrator)
             part = np.array(img, np.float32) * n
             acc = part if acc is None else acc + part
             done += n
@@ -156,3 +247,71 @@ def cache_dir(kind: str) -> Path:
     auto's decisions."""
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(base) / "layerbvh" / kind
+
+
+# -- memory ------------------------------------------------------------------------------------------
+
+# Bytes per film pixel (the film's channels, the developed image and the copies a render makes)
+# and per camera ray of a pass (sampler state, sample positions and weights, path state, queries).
+# Estimates, rounded up from what a render allocates (Mitsuba's block and ours); see memory_estimate.
+FILM_BYTES_PER_PIXEL = 96
+RAY_BYTES = {"megakernel": 160, "wavefront": 1024}
+MAX_LANES = 1 << 32  # Dr.Jit arrays hold fewer than 2^32 entries
+
+
+def available_memory() -> int | None:
+    """Bytes this process can still allocate: the least of the system's MemAvailable, the
+    cgroup's limit less its usage (containers) and the address-space limit (`ulimit -v`) less
+    this process's size; None where none can be read."""
+    import resource
+    limits = []
+    try:
+        with open("/proc/meminfo") as fh:
+            limits += [int(ln.split()[1]) * 1024 for ln in fh if ln.startswith("MemAvailable:")]
+    except OSError:
+        pass
+    try:
+        cap = Path("/sys/fs/cgroup/memory.max").read_text().strip()
+        if cap != "max":
+            limits.append(int(cap) - int(Path("/sys/fs/cgroup/memory.current").read_text()))
+    except (OSError, ValueError):
+        pass
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft != resource.RLIM_INFINITY:
+        try:
+            with open("/proc/self/status") as fh:
+                size = next(int(ln.split()[1]) * 1024 for ln in fh if ln.startswith("VmSize:"))
+            limits.append(soft - size)
+        except (OSError, StopIteration):
+            limits.append(soft)
+    return max(min(limits), 0) if limits else None
+
+
+def memory_estimate(width: int, height: int, spp: int, loop: str, work_bytes: int = 0) -> dict:
+    """What a render of width x height at `spp` needs, in bytes: the film, one pass's rays
+    (`passes_for`) in the given loop ("megakernel" or "wavefront"), and the traversal's BVH and
+    work memory (`work_bytes`)."""
+    pixels = width * height
+    passes, per_pass = passes_for(pixels, spp)
+    rays = pixels * min(per_pass, spp)
+    film = pixels * FILM_BYTES_PER_PIXEL
+    per_pass_bytes = rays * RAY_BYTES[loop]
+    return {"pixels": pixels, "rays_per_pass": rays, "passes": passes, "film": film, "rays": per_pass_bytes,
+            "traversal": work_bytes, "total": film + per_pass_bytes + work_bytes}
+
+
+def check_memory(width: int, height: int, spp: int, loop: str = "wavefront", work_bytes: int = 0,
+                 what: str = "the render") -> dict:
+    """The estimate, or a UserError (one line) when it exceeds the available memory or what one
+    Dr.Jit array can index."""
+    e = memory_estimate(width, height, spp, loop, work_bytes)
+    gib = (lambda b: f"{b / 2 ** 30:.1f} GiB")
+    if e["rays_per_pass"] >= MAX_LANES:
+        raise UserError(f"{what} at {width}x{height} traces {e['rays_per_pass']:,} camera rays in one pass, more "
+                        f"than Dr.Jit arrays can hold ({MAX_LANES:,}); lower the resolution")
+    free = available_memory()
+    if free is not None and e["total"] > free:
+        raise UserError(f"{what} at {width}x{height}, {spp} spp needs about {gib(e['total'])} (film "
+                        f"{gib(e['film'])}, one pass of {e['rays_per_pass']:,} rays {gib(e['rays'])}, traversal "
+                        f"{gib(e['traversal'])}); {gib(free)} is available: lower --res or --spp")
+    return e

@@ -5,15 +5,13 @@ import html
 import io
 import json
 import math
-import os
-import shutil
-import tempfile
 from numbers import Integral, Real
 from pathlib import Path
 
 import numpy as np
 
 from . import metrics
+from .atomic import atomic_folder
 from .render import write_exr
 
 # diff.png shows |ours - stock| * DIFF_SCALE per channel, tone mapped like the renders:
@@ -121,7 +119,10 @@ def render_html(rep: dict) -> str:
         "<style>body{font-family:sans-serif;margin:1.5em}figure{display:inline-block;margin:0 1em 1em 0}"
         "img{image-rendering:pixelated;max-width:30vw}table{border-collapse:collapse;margin-bottom:1.5em}"
         "td,th{border:1px solid #bbb;padding:2px 8px;text-align:left}</style>\n</head>\n<body>\n",
-        f"<h1>{esc(scene)}: stock Mitsuba vs ours</h1>\n<div>{figs}</div>\n",
+        f"<h1>{esc(scene)}: stock Mitsuba vs ours</h1>\n",
+        (f"<p style=\"border:2px solid #c60;padding:.5em;font-weight:bold\">Compared as path (--as-path): "
+         f"{esc(str(rep.get('compared_as_note', '')))}</p>\n" if "--as-path" in str(rep.get("compared_as", "")) else ""),
+        f"<div>{figs}</div>\n",
         "<h2>Metrics (ours against stock)</h2>\n", _table(("metric", "value"), rep.get("metrics", {}).items()),
         "<h2>Timings</h2>\n", _table(("key", "stock", "our loop + Embree", "ours"), _timing_rows(rep)),
         "<h2>Traversal statistics</h2>\n", _table(("statistic", "value"), _flatten(traversal)),
@@ -147,34 +148,18 @@ def _write_all(tmp: Path, stock: np.ndarray, ours: np.ndarray, rep: dict, flip_m
     _write_bytes(tmp / "index.html", render_html(rep).encode())
 
 
-def _publish(tmp: Path, out: Path) -> None:
-    if not out.exists():
-        os.chmod(tmp, 0o755)  # mkdtemp makes it 0700
-        try:
-            os.rename(tmp, out)  # the whole folder appears at once
-            return
-        except OSError:
-            pass  # out_dir appeared meanwhile: fall back to moving file by file
-    for f in tmp.iterdir():
-        os.replace(f, out / f.name)  # each file is swapped whole; unrelated files in out stay
-    tmp.rmdir()
+REPORT_MARKER = "report.json"  # the file that makes a folder a compare report
 
 
 def write_report(out_dir, stock_img, ours_img, info: dict) -> dict:
-    """Write the stock-vs-ours report into `out_dir` and return the report dict (= report.json).
+    """Write the stock-vs-ours report folder `out_dir` and return the report dict (= report.json).
 
-    Everything is written into a hidden sibling temp folder first, so a crash leaves no partial files.
-    """
-    out = Path(out_dir).absolute()
+    Written into a temporary sibling folder that then replaces `out_dir` whole
+    (atomic.atomic_folder): a crash leaves nothing half-written, and the folder's files always
+    come from one run."""
     stock, ours = metrics.as_rgb(stock_img, "stock"), metrics.as_rgb(ours_img, "ours")
     m, flip_map = metrics.compare_images_with_flip_map(stock, ours)
     rep = _json_safe({**dict(info), "metrics": m})
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(dir=out.parent, prefix=".tmp-report-"))
-    try:
+    with atomic_folder(out_dir, REPORT_MARKER) as tmp:
         _write_all(tmp, stock, ours, rep, flip_map)
-        _publish(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return rep

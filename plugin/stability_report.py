@@ -17,7 +17,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 
-from . import atomic, stability as sc
+from . import atomic, robustness as rb, stability as sc
 from .repo import ROOT
 
 
@@ -30,7 +30,7 @@ def _wrong(r) -> str:
     return "–" if not w else f"{w['ours']:,} / {w['default']:,} / {w['robust']:,}"
 
 
-def markdown(results, command: str, scale: float, seconds: float) -> str:
+def markdown(results, command: str, scale: float, seconds: float, robust=()) -> str:
     import drjit as dr
     import mitsuba as mi
     failed = [r.case for r in results if not r.passed]
@@ -65,6 +65,15 @@ def markdown(results, command: str, scale: float, seconds: float) -> str:
     lines += ["", "## The cases", ""]
     for r in results:
         lines += [f"**`{r.case}`**: {sc.CASES[r.case].what}.  ", f"Rule: {r.criterion}.  ", f"Notes: {r.notes}.", ""]
+    if robust:
+        failed = [r.case for r in robust if not r.passed]
+        lines += ["## The command line under abuse", "",
+                  "What a user or a hostile tester does, run as they would: `layerbvh` in a subprocess on small "
+                  "scenes, checking the exit code, the one line on stderr, what is left on disk and, where it "
+                  "renders, the image against stock Mitsuba (`layerbvh_mitsuba/robustness.py`; each case is also a "
+                  "test in `tests/test_robustness.py`). "
+                  f"**{len(robust) - len(failed)} of {len(robust)} pass**" + (f"; failing: {', '.join(failed)}." if failed else "."),
+                  "", rb.markdown(list(robust))]
     return "\n".join(lines) + "\n"
 
 
@@ -74,6 +83,7 @@ def main(argv=None) -> int:
     p.add_argument("--cases", nargs="+", metavar="NAME", help="only these cases (default: all)")
     p.add_argument("--out", default=str(ROOT / "STABILITY.md"), help="markdown report (default STABILITY.md)")
     p.add_argument("--json", help="also write every figure here")
+    p.add_argument("--no-cli", action="store_true", help="leave out the command-line cases (robustness)")
     args = p.parse_args(argv)
     names = args.cases or list(sc.CASES)
     unknown = [n for n in names if n not in sc.CASES]
@@ -88,13 +98,19 @@ def main(argv=None) -> int:
         r = sc.run_case(name, args.scale)
         results.append(r)
         tqdm.write(f"{name}: {'pass' if r.passed else 'FAIL'} ({r.criterion})", file=sys.stderr)
-    md = markdown(results, command, args.scale, time.perf_counter() - t0)
+    robust = []
+    if not args.no_cli and not args.cases:
+        for name in tqdm(list(rb.CASES), desc="command line", unit="case", file=sys.stderr):
+            robust.append(rb.run_case(name))
+            tqdm.write(f"{name}: {'pass' if robust[-1].passed else 'FAIL'} ({robust[-1].outcome})", file=sys.stderr)
+    md = markdown(results, command, args.scale, time.perf_counter() - t0, robust)
     atomic.write_text(args.out, md)
     if args.json:
         atomic.write_text(args.json, json.dumps({"command": command, "scale": args.scale,
-                                                 "results": [asdict(r) for r in results]}, indent=1, default=str))
+                                                 "results": [asdict(r) for r in results],
+                                                 "command_line": [asdict(r) for r in robust]}, indent=1, default=str))
     print(f"wrote {args.out}")
-    return 0 if all(r.passed for r in results) else 1
+    return 0 if all(r.passed for r in [*results, *robust]) else 1
 
 
 if __name__ == "__main__":

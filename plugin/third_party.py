@@ -76,33 +76,6 @@ def _xml_text(path: Path, seen=None) -> str:
     return text
 
 
-def _inner_path_settings(mi, scene) -> tuple[dict, str]:
-    """Integrator settings to give stock `path` and ours, and a note when the scene's integrator is
-    not a plain `path`. Plain `path`: `cli.path_props`. A wrapper (moment/aov) around `path`: the
-    inner integrator's max_depth/rr_depth read from its string form. Anything else: path defaults."""
-    from layerbvh_mitsuba.render import path_props, signed_depth
-    integ = scene.integrator()
-    if integ is None:
-        return {}, "scene has no integrator; used path defaults"
-    cls = integ.class_name()
-    if cls == "PathIntegrator":
-        return path_props(mi, scene), ""
-    text = str(integ)
-    m = re.search(r"PathIntegrator\[(.*?)\]", text, re.S)
-    if m:
-        props = {}
-        for key in ("max_depth", "rr_depth"):
-            k = re.search(rf"\b{key}\s*=\s*(-?\d+)", m.group(1))
-            if k:
-                props[key] = signed_depth(int(k.group(1)))
-        shown = ", ".join(f"{k}={v}" for k, v in props.items()) or "path defaults"
-        return props, f"scene integrator {cls.replace('Integrator', '').lower()}(path); compared path with inner {shown}"
-    inner = re.findall(r"(\w+)Integrator\[", text)
-    inner = [n.lower() for n in inner if n + "Integrator" != cls]
-    what = f"{cls.replace('Integrator', '').lower()}" + (f"({', '.join(inner)})" if inner else "")
-    return {}, f"scene integrator {what} is not path; compared path with defaults (max_depth=-1, rr_depth=5)"
-
-
 def _shape_counts(scene) -> tuple[int, str]:
     tris, other = 0, {}
     for s in scene.shapes():
@@ -160,7 +133,7 @@ def run_worker(args) -> dict:
     from layerbvh_mitsuba.render import use_variant
     mi = use_variant(args.variant)
     from layerbvh_mitsuba.adapter import UnsupportedShapeError
-    from layerbvh_mitsuba.render import UserError, load_scene, render_passes
+    from layerbvh_mitsuba.render import UserError, load_scene, path_settings, render_passes
     from layerbvh_mitsuba.metrics import compare_images
 
     if "spectral" not in args.variant and (re.search(r'<spectrum[^>]*value\s*=\s*"[^"]*\d\s*:', text)
@@ -179,7 +152,9 @@ def run_worker(args) -> dict:
         rec["result"] = f"fails in stock Mitsuba: {_one_line(e)}"
         return rec
     rec["triangles"], rec["other_shapes"] = _shape_counts(scene)
-    props, note = _inner_path_settings(mi, scene)
+    # The table compares every scene as path and says so where its integrator is another one.
+    path = path_settings(mi, scene, as_path=True)
+    props, note = path.props, path.note
     if "hide_emitters" in text and "hide_emitters" not in props:
         m = re.search(r'name\s*=\s*"hide_emitters"\s+value\s*=\s*"(\w+)"', text)
         if m:

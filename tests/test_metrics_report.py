@@ -224,16 +224,26 @@ def test_write_report_files(tmp_path):
     assert "build_s" in page and "per_level.mean" in page and "(40 items)" in page
 
 
-def test_write_report_replaces_into_existing_dir(tmp_path):
+def test_write_report_replaces_an_earlier_report_whole(tmp_path):
+    """A report folder holds the files of one run: an earlier report is replaced as a whole
+    (a file left from it would no longer belong to the report), and a folder that is not a
+    report is never replaced."""
     out = tmp_path / "run"
     out.mkdir()
-    (out / "notes.txt").write_text("keep me")
+    (out / "notes.txt").write_text("from the earlier run")
     (out / "report.json").write_text("stale")
     stock, ours = _pair()
     report.write_report(out, stock, ours, _info())
-    assert {p.name for p in out.iterdir()} == FILES | {"notes.txt"}
+    assert {p.name for p in out.iterdir()} == FILES
     assert json.loads((out / "report.json").read_text())["scene"] == "cbox <test> & co"
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
+    theirs = tmp_path / "theirs"
+    theirs.mkdir()
+    (theirs / "notes.txt").write_text("keep me")
+    with pytest.raises(FileExistsError, match="not a layerbvh output"):
+        report.write_report(theirs, stock, ours, _info())
+    assert [p.name for p in theirs.iterdir()] == ["notes.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run", "theirs"]
 
 
 def _explode(*_a, **_k):
