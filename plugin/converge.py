@@ -326,10 +326,12 @@ def csv_text(configs: list[Config]) -> str:
     return buf.getvalue()
 
 
-def plot_png(configs: list[Config], title: str) -> bytes:
+def plot_png(configs: list[Config], title: str, table: dict | None = None) -> bytes:
     """Log-log error vs seconds per metric: each configuration's renders as points in time order,
     labelled with their spp, the fitted line the table's numbers come from (dashed), and the
-    ideal Monte Carlo slope from each configuration's first point (dotted)."""
+    ideal Monte Carlo slope from each configuration's first point (dotted). On the relMSE plot
+    the table's reads are marked: the common time (vertical) with each configuration's error
+    there (x), and stock's final error (horizontal) with the time each reaches it (+)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -352,6 +354,16 @@ def plot_png(configs: list[Config], title: str) -> bytes:
                 ax.plot(tt, np.exp(f["intercept"] + f["slope"] * np.log(tt)), "--", color=color, lw=1)
             first = min(pts, key=lambda p: p["seconds"])
             ax.plot(t, first[m] * (t / first["seconds"]) ** ideal, ":", color=color, lw=1)
+        if m == "rel_mse" and table is not None:
+            ax.axvline(table["equal_time_s"], color="0.5", lw=0.8, ls="-.", label="equal time")
+            ax.axhline(table["equal_error_rel_mse"], color="0.5", lw=0.8, ls="-.", label=f"{table['base']}'s error")
+            for i, c in enumerate(configs):
+                r = table["rows"][c.name]
+                color = colors[i % len(colors)]
+                if r["rel_mse_at_equal_time"] is not None:
+                    ax.plot(table["equal_time_s"], r["rel_mse_at_equal_time"], "x", color=color, ms=9, mew=2)
+                if r["seconds_to_equal_error"] is not None:
+                    ax.plot(r["seconds_to_equal_error"], table["equal_error_rel_mse"], "+", color=color, ms=11, mew=2)
         ax.plot([], [], "k--", lw=1, label="fitted line")
         ax.plot([], [], "k:", lw=1, label=f"ideal slope {ideal:g}")
         ax.set_xscale("log")
@@ -371,12 +383,46 @@ def plot_png(configs: list[Config], title: str) -> bytes:
 OUTPUT_MARKER = "convergence.json"  # the file that makes a folder a converge output
 
 
+def html_page(configs: list[Config], table: dict, title: str) -> str:
+    """convergence.html: the plot and the table, with the reasons for every n/a."""
+    import html
+    esc = html.escape
+    base = table["base"]
+    head = ("<tr><th>config</th><th>build s</th><th>compile s</th><th>spp reached</th><th>slope vs spp</th>"
+            f"<th>relMSE at equal time</th><th>× {esc(base)}</th><th>seconds to equal error</th><th>× {esc(base)}</th></tr>")
+    rows, notes = [], []
+    for c in configs:
+        r = table["rows"][c.name]
+        slope = c.fit["rel_mse_vs_spp"]
+        cells = [c.name, f"{c.build_s:.2f}", f"{c.compile_s:.2f}", str(c.points[-1]["spp"]),
+                 _g(slope and slope["slope"], ".2f"), _g(r["rel_mse_at_equal_time"]),
+                 _g(r["error_vs_base"], ".2f") + ("*" if r.get("equal_time_extrapolated") else ""),
+                 _g(r["seconds_to_equal_error"]), _g(r["time_vs_base"], ".2f") + ("*" if r.get("equal_error_extrapolated") else "")]
+        rows.append("<tr>" + "".join(f"<td>{esc(x)}</td>" for x in cells) + "</tr>")
+        if r.get("why_not"):
+            notes.append(f"<li>{esc(c.name)}: n/a because {esc(r['why_not'])}</li>")
+    return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>Error against run time</title>"
+            "<style>body{font-family:system-ui,sans-serif;margin:1.2em 2em}table{border-collapse:collapse}"
+            "td,th{border:1px solid #ccc;padding:3px 9px;text-align:right}td:first-child,th:first-child{text-align:left}"
+            "img{max-width:100%}</style></head><body>"
+            f"<h1>Error against run time</h1><p>{esc(title)}</p>"
+            f"<p>Equal time: {table['equal_time_s']:.3g} s per render (the longest every configuration reached); "
+            f"equal error: {esc(base)}'s final relMSE {table['equal_error_rel_mse']:.3g}. Both are read from each "
+            f"configuration's fitted line (dashed), marked on the relMSE plot (x: error at equal time, +: time to "
+            f"equal error); * = read outside the rendered times (never beyond {MAX_EXTRAPOLATION:g}×), n/a = no "
+            f"trustworthy read.</p><img src=\"convergence.png\" alt=\"error against run time\">"
+            f"<table>{head}{''.join(rows)}</table><ul>{''.join(notes)}</ul>"
+            "<p><a href=\"convergence.csv\">convergence.csv</a> · <a href=\"convergence.json\">convergence.json</a>"
+            "</p></body></html>\n")
+
+
 def write_outputs(out: Path, configs: list[Config], doc: dict, table_md: str, title: str) -> None:
     """The output folder, written whole (atomic.atomic_folder: the folder's files are one run's)."""
     with atomic.atomic_folder(out, OUTPUT_MARKER) as tmp:
         atomic.write_text(tmp / "convergence.csv", csv_text(configs))
-        atomic.write_bytes(tmp / "convergence.png", plot_png(configs, title))
+        atomic.write_bytes(tmp / "convergence.png", plot_png(configs, title, doc["table"]))
         atomic.write_text(tmp / "convergence.md", f"# Error against run time\n\n{title}\n\n{table_md}")
+        atomic.write_text(tmp / "convergence.html", html_page(configs, doc["table"], title))
         atomic.write_text(tmp / OUTPUT_MARKER, json.dumps(doc, indent=1))
 
 

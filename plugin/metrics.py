@@ -11,6 +11,12 @@ import numpy as np
 _SRGB_LINEAR_CUTOFF = 0.0031308
 _REL_MSE_EPS = 1e-2
 _DIFF_THRESHOLD = 1e-3
+# The same-seed criterion (tests, the report's verdict, the third-party table): at least
+# SAME_SEED_MIN_FRAC of the pixels within SAME_SEED_TOL in every channel, and the mean |diff| at
+# most SAME_SEED_MAX_MEAN_REL of the mean pixel value.
+SAME_SEED_TOL = 1e-3
+SAME_SEED_MIN_FRAC = 0.999
+SAME_SEED_MAX_MEAN_REL = 1e-4
 _EQUAL_MEANS_TOL = 1e-6
 
 
@@ -95,6 +101,20 @@ def _error_norms(r: np.ndarray, t: np.ndarray) -> dict:
         "mean_ref": float(r64.mean()),
         "pixels": int(r.shape[0] * r.shape[1]),
     }
+
+
+def same_seed_verdict(ref, test, tol: float = SAME_SEED_TOL, min_frac: float = SAME_SEED_MIN_FRAC,
+                      max_mean_rel: float = SAME_SEED_MAX_MEAN_REL) -> dict:
+    """Does a same-seed render equal the reference up to floating-point noise? {passed,
+    criterion, values}: the share of pixels whose every channel is within `tol`, and the mean
+    |diff| against the mean pixel value."""
+    r, t = _pair(ref, test)
+    d = np.abs(t.astype(np.float64) - r)
+    frac, mean_abs, mean_ref = float(np.mean(d.max(-1) <= tol)), float(d.mean()), float(r.astype(np.float64).mean())
+    return {"passed": frac >= min_frac and mean_abs <= max_mean_rel * mean_ref,
+            "criterion": f"same seed: >= {100 * min_frac:g}% of pixels within {tol:g} in every channel and mean "
+                         f"|diff| <= {max_mean_rel:g} x mean pixel",
+            "values": {"frac_within": frac, "mean_abs": mean_abs, "mean_ref": mean_ref, "max_abs": float(d.max())}}
 
 
 def compare_images_with_flip_map(ref, test) -> tuple[dict, np.ndarray]:

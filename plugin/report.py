@@ -1,7 +1,6 @@
-"""A/B report folder (EXR, PNG, ꟻLIP map, report.json, index.html) for stock vs ours, written crash-safely."""
+"""A/B report folder for stock vs ours (EXRs, PNGs, error and heat maps, report.json with the verdict, index.html), written whole."""
 from __future__ import annotations
 
-import html
 import io
 import json
 import math
@@ -10,17 +9,14 @@ from pathlib import Path
 
 import numpy as np
 
-from . import metrics
+from . import metrics, page
 from .atomic import atomic_folder
 from .render import write_exr
 
-# diff.png shows |ours - stock| * DIFF_SCALE per channel, tone mapped like the renders:
-# a linear difference of 0.1 or more is full white, and the hue tells which channel is off.
-DIFF_SCALE = 10.0
-_LIST_PREVIEW = 8
-
-_IMAGES = (("stock.png", "stock (reference)"), ("ours.png", "ours"),
-           ("flip.png", "ꟻLIP error (magma)"), ("diff.png", f"|ours − stock| × {DIFF_SCALE:g}"))
+# diff.png shows the largest channel of |ours - stock| per pixel, scaled so that its 99th
+# percentile is the top of the colour map (viridis): the scale adapts to how close the images are,
+# and is written on the page's colour bar.
+DIFF_PERCENTILE = 99.0
 
 
 def to_png_bytes(rgb01: np.ndarray) -> bytes:
@@ -33,14 +29,21 @@ def to_png_bytes(rgb01: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def _magma(err: np.ndarray) -> np.ndarray:
+def _colour_map(values: np.ndarray, cmap: str) -> np.ndarray:
+    """(H, W) values in [0, 1] -> (H, W, 3) colours of a matplotlib colour map."""
     from matplotlib import colormaps
 
-    return colormaps["magma"](np.clip(err, 0.0, 1.0))[..., :3]
+    return colormaps[cmap](np.clip(values, 0.0, 1.0))[..., :3]
 
 
-def _diff_image(stock: np.ndarray, ours: np.ndarray) -> np.ndarray:
-    return metrics.tonemap_srgb(np.abs(ours - stock) * DIFF_SCALE)
+def diff_map(stock: np.ndarray, ours: np.ndarray) -> tuple[np.ndarray, float]:
+    """The per-pixel largest channel of |ours - stock| divided by its DIFF_PERCENTILE-th
+    percentile (the scale), and that scale (0 when the images are equal)."""
+    d = np.abs(ours.astype(np.float64) - stock).max(-1)
+    scale = float(np.percentile(d, DIFF_PERCENTILE))
+    if scale <= 0:
+        scale = float(d.max())
+    return (d / scale if scale > 0 else d), scale
 
 
 def _json_safe(x):
@@ -64,72 +67,9 @@ def _json_safe(x):
     return str(x)  # paths, enums, ...: a report should not die over an exotic info value
 
 
-def _flatten(d: dict, prefix: str = "") -> list[tuple[str, object]]:
-    rows = []
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict):
-            rows.extend(_flatten(v, key + "."))
-        else:
-            rows.append((key, v))
-    return rows
-
-
-def _fmt(v) -> str:
-    if isinstance(v, list):
-        head = ", ".join(_fmt(x) for x in v[:_LIST_PREVIEW])
-        more = f", … ({len(v)} items)" if len(v) > _LIST_PREVIEW else ""
-        return f"[{head}{more}]"
-    if isinstance(v, float):
-        return f"{v:.6g}"
-    return "—" if v is None else str(v)
-
-
-def _table(header: tuple[str, ...], rows) -> str:
-    esc = html.escape
-    head = "".join(f"<th>{esc(h)}</th>" for h in header)
-    body = "".join("<tr>" + "".join(f"<td>{esc(_fmt(c))}</td>" for c in r) + "</tr>\n" for r in rows)
-    return f"<table>\n<tr>{head}</tr>\n{body}</table>\n"
-
-
-def _is_number(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
-TIMED_SIDES = ("stock", "embree_control", "ours")
-
-
-def _timing_rows(rep: dict) -> list[tuple]:
-    sides = [rep.get(s) if isinstance(rep.get(s), dict) else {} for s in TIMED_SIDES]
-    keys = list(dict.fromkeys(k for side in sides for k, v in side.items() if _is_number(v)))
-    return [(k, *(side.get(k) if _is_number(side.get(k)) else None for side in sides)) for k in keys]
-
-
-def render_html(rep: dict) -> str:
-    """The self-contained index.html for a report dict (as written to report.json)."""
-    esc = html.escape
-    scene = str(rep.get("scene", "scene"))
-    figs = "".join(f'<figure><img src="{f}" alt="{esc(c)}"><figcaption>{esc(c)}</figcaption></figure>\n'
-                   for f, c in _IMAGES)
-    run = {k: v for k, v in rep.items() if k not in ("metrics", *TIMED_SIDES, "traversal")}
-    traversal = rep.get("traversal") if isinstance(rep.get("traversal"), dict) else {}
-    parts = [
-        "<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n",
-        f"<title>{esc(scene)}: stock vs ours</title>\n",
-        "<style>body{font-family:sans-serif;margin:1.5em}figure{display:inline-block;margin:0 1em 1em 0}"
-        "img{image-rendering:pixelated;max-width:30vw}table{border-collapse:collapse;margin-bottom:1.5em}"
-        "td,th{border:1px solid #bbb;padding:2px 8px;text-align:left}</style>\n</head>\n<body>\n",
-        f"<h1>{esc(scene)}: stock Mitsuba vs ours</h1>\n",
-        (f"<p style=\"border:2px solid #c60;padding:.5em;font-weight:bold\">Compared as path (--as-path): "
-         f"{esc(str(rep.get('compared_as_note', '')))}</p>\n" if "--as-path" in str(rep.get("compared_as", "")) else ""),
-        f"<div>{figs}</div>\n",
-        "<h2>Metrics (ours against stock)</h2>\n", _table(("metric", "value"), rep.get("metrics", {}).items()),
-        "<h2>Timings</h2>\n", _table(("key", "stock", "our loop + Embree", "ours"), _timing_rows(rep)),
-        "<h2>Traversal statistics</h2>\n", _table(("statistic", "value"), _flatten(traversal)),
-        "<h2>Run</h2>\n", _table(("key", "value"), _flatten(run)),
-        "</body>\n</html>\n",
-    ]
-    return "".join(parts)
+def render_html(rep: dict, stock: np.ndarray, ours: np.ndarray, maps: dict, heatmaps: list) -> str:
+    """The self-contained index.html (page.render_page)."""
+    return page.render_page(rep, stock, ours, maps, heatmaps)
 
 
 def _write_bytes(path: Path, data: bytes) -> None:
@@ -137,21 +77,34 @@ def _write_bytes(path: Path, data: bytes) -> None:
         f.write(data)
 
 
-def _write_all(tmp: Path, stock: np.ndarray, ours: np.ndarray, rep: dict, flip_map: np.ndarray) -> None:
+def _write_all(tmp: Path, stock: np.ndarray, ours: np.ndarray, rep: dict, flip_map: np.ndarray,
+               heatmaps: dict) -> None:
     write_exr(tmp / "stock.exr", stock)
     write_exr(tmp / "ours.exr", ours)
     _write_bytes(tmp / "stock.png", to_png_bytes(metrics.tonemap_srgb(stock)))
     _write_bytes(tmp / "ours.png", to_png_bytes(metrics.tonemap_srgb(ours)))
-    _write_bytes(tmp / "flip.png", to_png_bytes(_magma(flip_map)))
-    _write_bytes(tmp / "diff.png", to_png_bytes(_diff_image(stock, ours)))
+    _write_bytes(tmp / "flip.png", to_png_bytes(_colour_map(flip_map, "magma")))
+    diff, scale = diff_map(stock, ours)
+    _write_bytes(tmp / "diff.png", to_png_bytes(_colour_map(diff, "viridis")))
+    maps = {"|ours − stock|": ("diff.png", page.colour_bar("viridis", "0", f"{scale:.3g}",
+                                                           f"largest channel of |ours − stock| (linear radiance); the "
+                                                           f"top is its {DIFF_PERCENTILE:g}th percentile")),
+            "ꟻLIP": ("flip.png", page.colour_bar("magma", "0", "1", "ꟻLIP error per pixel (0 = identical)"))}
+    heat = []
+    for name, img in heatmaps.items():
+        png, top = heatmap_png(img)
+        _write_bytes(tmp / f"heat_{name}.png", png)
+        write_exr(tmp / f"heat_{name}.exr", np.repeat(img[:, :, None], 3, 2))
+        heat.append((HEATMAP_TITLES.get(name, name), f"heat_{name}.png",
+                     page.colour_bar("inferno", "0", f"{top:.3g}", "per pixel sample (mean)")))
     _write_bytes(tmp / "report.json", (json.dumps(rep, indent=2, allow_nan=False) + "\n").encode())
-    _write_bytes(tmp / "index.html", render_html(rep).encode())
+    _write_bytes(tmp / "index.html", render_html(rep, stock, ours, maps, heat).encode())
 
 
 REPORT_MARKER = "report.json"  # the file that makes a folder a compare report
 
 
-def write_report(out_dir, stock_img, ours_img, info: dict) -> dict:
+def write_report(out_dir, stock_img, ours_img, info: dict, heatmaps: dict | None = None) -> dict:
     """Write the stock-vs-ours report folder `out_dir` and return the report dict (= report.json).
 
     Written into a temporary sibling folder that then replaces `out_dir` whole
@@ -159,7 +112,21 @@ def write_report(out_dir, stock_img, ours_img, info: dict) -> dict:
     come from one run."""
     stock, ours = metrics.as_rgb(stock_img, "stock"), metrics.as_rgb(ours_img, "ours")
     m, flip_map = metrics.compare_images_with_flip_map(stock, ours)
-    rep = _json_safe({**dict(info), "metrics": m})
+    rep = _json_safe({**dict(info), "metrics": m, "verdict": metrics.same_seed_verdict(stock, ours)})
     with atomic_folder(out_dir, REPORT_MARKER) as tmp:
-        _write_all(tmp, stock, ours, rep, flip_map)
+        _write_all(tmp, stock, ours, rep, flip_map, heatmaps or {})
     return rep
+
+
+# -- traversal-cost heat maps -------------------------------------------------------------------------
+
+HEATMAP_TITLES = {"camera_inner": "inner nodes, camera rays", "camera_triangles": "triangles tested, camera rays",
+                  "path_inner": "inner nodes, whole paths", "path_triangles": "triangles tested, whole paths",
+                  "path_steps": "wavefront steps, whole paths"}
+
+
+def heatmap_png(values: np.ndarray) -> tuple[bytes, float]:
+    """A per-pixel count as a PNG in the inferno colour map scaled to its 99th percentile, and
+    that scale."""
+    top = float(np.percentile(values, 99)) or float(values.max()) or 1.0
+    return to_png_bytes(_colour_map(values / top, "inferno")), top

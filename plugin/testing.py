@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .metrics import SAME_SEED_MAX_MEAN_REL, SAME_SEED_MIN_FRAC, SAME_SEED_TOL, same_seed_verdict
+
 
 @dataclass
 class SameSeedResult:
@@ -44,19 +46,22 @@ def render_pair(scene, spp: int, seed: int = 0, traversal: str = "per_ray", ours
     return a, b
 
 
-def same_seed(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", tol=1e-3, **params) -> SameSeedResult:
+def same_seed(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", tol=SAME_SEED_TOL,
+              **params) -> SameSeedResult:
     scene = load(scene_path, res, **params)
     a, b = render_pair(scene, spp, seed, traversal)
-    d = np.abs(a - b)
-    return SameSeedResult(frac_within=float(np.mean(d.max(-1) <= tol)), mean_abs=float(d.mean()),
-                          mean_ref=float(a.mean()), max_abs=float(d.max()), stock=a, ours=b)
+    v = same_seed_verdict(a, b, tol)["values"]
+    return SameSeedResult(frac_within=v["frac_within"], mean_abs=v["mean_abs"], mean_ref=v["mean_ref"],
+                          max_abs=v["max_abs"], stock=a, ours=b)
 
 
-def assert_matches_stock(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", tol=1e-3,
-                         min_frac=0.999, max_mean_rel=1e-4, diff_dir=None, **params) -> SameSeedResult:
-    """Same seed: the layerbvh render must equal stock `path` to within `tol` in `min_frac` of the
-    pixels, with mean |diff| <= max_mean_rel * mean pixel value. On failure the message gives the
-    numbers and, with `diff_dir`, the stock/ours/diff images are saved there as EXR."""
+def assert_matches_stock(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", tol=SAME_SEED_TOL,
+                         min_frac=SAME_SEED_MIN_FRAC, max_mean_rel=SAME_SEED_MAX_MEAN_REL, diff_dir=None,
+                         **params) -> SameSeedResult:
+    """Same seed: the layerbvh render must equal stock `path` (metrics.same_seed_verdict): within
+    `tol` in `min_frac` of the pixels, with mean |diff| <= max_mean_rel * mean pixel value. On
+    failure the message gives the numbers and, with `diff_dir`, the stock/ours/diff images are
+    saved there as EXR."""
     r = same_seed(scene_path, spp, res, seed, traversal, tol, **params)
     ok = r.frac_within >= min_frac and r.mean_abs <= max_mean_rel * r.mean_ref
     if not ok:

@@ -34,6 +34,17 @@ if ! ldconfig -p 2>/dev/null | grep -q 'libLLVM.so.19\|libLLVM-19'; then
   fi
 fi
 
+# The test suite's browser test drives Debian's chromium through chromedriver (scripts/test.sh
+# passes --test); without them that one test is skipped with its reason.
+if [ "${1:-}" = "--test" ] && ! { command -v chromium >/dev/null && command -v chromedriver >/dev/null; }; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    say "installing Debian packages chromium and chromium-driver (the report page's browser test)"
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium chromium-driver >/dev/null
+  else
+    say "chromium/chromedriver are missing: the browser test will be skipped (sudo apt-get install chromium chromium-driver)"
+  fi
+fi
+
 stamp=".venv/.layerbvh-installed"
 want="$(sha256sum pyproject.toml | cut -d' ' -f1)"
 if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then

@@ -49,11 +49,16 @@ def test_every_output_is_written(converged):
     assert {"config", "spp", "seconds", "rel_mse", "flip", "delta_e2000"} <= set(rows[0])
     assert len(rows) == 21 and all(float(r["delta_e2000"]) >= 0 for r in rows)
     assert mpimg.imread(out / "convergence.png").shape[1] > 1000
+    page = (out / "convergence.html").read_text()
+    assert '<img src="convergence.png"' in page and all(f"<td>{n}</td>" in page for n in ("stock", "per_ray"))
     md = (out / "convergence.md").read_text()
     for name in ("stock", "per_ray", "layer_sorted:2"):
         assert f"| {name} |" in md
     table = json.loads((out / "convergence.json").read_text())["table"]
-    assert table["base"] == "stock" and table["rows"]["stock"]["time_vs_base"] == pytest.approx(1.0)
+    stock = table["rows"]["stock"]
+    # Stock against itself is 1, unless its time fit is too noisy to read (tiny renders: R² < 0.9).
+    assert table["base"] == "stock" and (stock["time_vs_base"] == pytest.approx(1.0)
+                                         or (stock["time_vs_base"] is None and "R²" in stock["why_not"]))
     assert not list(out.glob(".*.tmp*")), "no temporary files left behind"
 
 

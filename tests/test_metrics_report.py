@@ -220,8 +220,12 @@ def test_write_report_files(tmp_path):
 
     page = (out / "index.html").read_text()
     assert "cbox &lt;test&gt; &amp; co" in page and "cbox <test>" not in page
-    assert '<img src="stock.png"' in page and '<img src="flip.png"' in page
-    assert "build_s" in page and "per_level.mean" in page and "(40 items)" in page
+    assert '<img src="diff.png"' in page and '<img src="flip.png"' in page and '<canvas id="view"' in page
+    assert "BVH build" in page and "ours ÷ stock" in page and "1.50×" in page  # 2.25 s against 1.5 s
+    # Ours is 2% brighter everywhere: the verdict says it differs, in the page and in report.json.
+    assert loaded["verdict"]["passed"] is False and 'id="verdict" data-passed="false"' in page
+    assert loaded["verdict"]["values"]["frac_within"] == pytest.approx(
+        metrics.same_seed_verdict(stock, ours)["values"]["frac_within"])
 
 
 def test_write_report_replaces_an_earlier_report_whole(tmp_path):
