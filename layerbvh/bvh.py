@@ -31,6 +31,7 @@ class Hits:
     u: object
     v: object
     stats: TraceStats
+    work: dict | None = None  # with stats: per ray, state.WORK counts (inner_nodes, triangles, steps, ...)
 
 
 @dataclass
@@ -40,6 +41,7 @@ class Occlusion:
 
     occluded: object
     stats: TraceStats
+    work: dict | None = None  # as in Hits
 
 
 class LayerBVH:
@@ -115,7 +117,7 @@ class LayerBVH:
         else:
             res, st = self._run_batches(batch, mode, any_hit, count_work)
         if count_work:
-            st.finish(*(int(dr.sum(w)[0]) if n else 0 for w in res.work))
+            st.finish({name: int(dr.sum(w)[0]) if n else 0 for name, w in res.work.items()})
         st.time_total_s = time.perf_counter() - t0
         if chosen is not None:
             st.mode = f"{AUTO}:{chosen}"
@@ -144,18 +146,20 @@ class LayerBVH:
         of rays (e.g. 'camera', 'bounce') so auto decides for each kind apart."""
         batch, res, st = self._run(origins, directions, tmax, active, mode, False, stats, hint)
         back = batch.to_caller
+        work = {k: back(w) for k, w in res.work.items()} if stats else None
         if st.rays == 0:  # empty arrays as they are (Dr.Jit cannot compare them with a literal)
-            return Hits(t=back(res.t), prim=back(res.prim), u=back(res.u), v=back(res.v), stats=st)
+            return Hits(t=back(res.t), prim=back(res.prim), u=back(res.u), v=back(res.v), stats=st, work=work)
         hit = res.prim != MISS
         t = dr.select(hit, res.t, dr.inf)  # a ray that finished without a hit carries its tmax
-        return Hits(t=back(t), prim=back(res.prim), u=back(res.u), v=back(res.v), stats=st)
+        return Hits(t=back(t), prim=back(res.prim), u=back(res.u), v=back(res.v), stats=st, work=work)
 
     def occluded(self, origins, directions, tmax=None, mode="layer_sorted", stats=True, hint="",
                  active=None) -> Occlusion:
         """Any hit at 0 < t < tmax (the traversal stops at the first one); inputs as in `trace`."""
         batch, res, st = self._run(origins, directions, tmax, active, mode, True, stats, hint)
         occ = res.prim != MISS if st.rays else dr.zeros(self.m.Bool, 0)
-        return Occlusion(occluded=batch.to_caller(occ), stats=st)
+        work = {k: batch.to_caller(w) for k, w in res.work.items()} if stats else None
+        return Occlusion(occluded=batch.to_caller(occ), stats=st, work=work)
 
     # -- tracing inside the caller's kernel ------------------------------------------------------
     def trace_inline(self, origins, directions, tmax, active, any_hit: bool = False) -> Hits:

@@ -7,6 +7,9 @@ import drjit as dr
 
 # The one "no hit" value: the primitive of a ray that hit nothing (uint32).
 MISS = 0xFFFFFFFF
+# Work counted per ray when statistics are asked for: RayState field -> Results/Hits name.
+WORK = {"n_inner": "inner_nodes", "n_leaf": "leaves", "n_tri": "triangles", "n_iter": "iterations",
+        "n_steps": "steps"}
 
 
 class SlotRays:
@@ -79,6 +82,7 @@ class RayState:
     n_leaf: object = None
     n_tri: object = None
     n_iter: object = None
+    n_steps: object = None  # kernel calls (wavefront steps, or the per-ray kernel) the ray took part in
 
     @classmethod
     def start(cls, m, tmax, count_work: bool) -> "RayState":
@@ -88,7 +92,8 @@ class RayState:
         s = cls(t=m.Float(tmax), u=dr.zeros(m.Float, n), v=dr.zeros(m.Float, n), prim=dr.full(m.UInt32, MISS, n),
                 link=zero, sp=zero, slot=dr.arange(m.UInt32, n), treelet=zero)
         if count_work:
-            s.n_inner, s.n_leaf, s.n_tri, s.n_iter = zero, zero, zero, zero
+            for field in WORK:
+                setattr(s, field, zero)
         return s
 
     def fields(self) -> dict:
@@ -108,10 +113,10 @@ class Results:
         self.u = dr.zeros(m.Float, n)
         self.v = dr.zeros(m.Float, n)
         self.prim = dr.full(m.UInt32, MISS, n)
-        self.work = [dr.zeros(m.UInt32, n) for _ in range(4)]  # inner, leaf, tri, iterations
+        self.work = {name: dr.zeros(m.UInt32, n) for name in WORK.values()}  # per ray (statistics)
 
     def arrays(self) -> tuple:
-        return (self.t, self.u, self.v, self.prim, *self.work)
+        return (self.t, self.u, self.v, self.prim, *self.work.values())
 
     def place(self, other: "Results", idx) -> None:
         """Copy the results of a sub-batch to the rays `idx`."""
@@ -122,5 +127,5 @@ class Results:
         for dst, src in ((self.t, s.t), (self.u, s.u), (self.v, s.v), (self.prim, s.prim)):
             dr.scatter(dst, src, s.slot, mask)
         if s.n_iter is not None:
-            for dst, src in zip(self.work, (s.n_inner, s.n_leaf, s.n_tri, s.n_iter)):
-                dr.scatter(dst, src, s.slot, mask)
+            for field, name in WORK.items():
+                dr.scatter(self.work[name], getattr(s, field), s.slot, mask)

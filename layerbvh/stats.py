@@ -22,6 +22,7 @@ class TraceStats:
     leaves: int = 0
     triangles: int = 0
     iterations: int = 0
+    ray_steps: int = 0  # kernel calls summed over rays (each ray's wavefront steps)
     time_sort_s: float = 0.0
     time_traverse_s: float = 0.0
     time_treelet_s: float = 0.0
@@ -43,8 +44,12 @@ class TraceStats:
         self.work_bytes = max(self.work_bytes, other.work_bytes)  # batches run one after another
         self.batches += 1
 
-    def finish(self, inner: int, leaves: int, tris: int, iters: int) -> None:
-        self.inner_nodes, self.leaves, self.triangles, self.iterations = inner, leaves, tris, iters
+    def finish(self, totals: dict) -> None:
+        """Work totals over all rays (state.WORK names)."""
+        self.inner_nodes, self.leaves = totals["inner_nodes"], totals["leaves"]
+        self.triangles, self.iterations = totals["triangles"], totals["iterations"]
+        self.ray_steps = totals["steps"]
+        tris, iters = self.triangles, self.iterations
         share = tris / iters if iters else 0.0
         self.time_leaf_s = self.time_traverse_s * share
         self.time_treelet_s = self.time_traverse_s - self.time_leaf_s

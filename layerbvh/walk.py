@@ -45,6 +45,7 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
     zero = m.UInt32(0)
     n_inner, n_leaf, n_tri, n_iter = (m.UInt32(c) if count_work else zero
                                       for c in (s.n_inner, s.n_leaf, s.n_tri, s.n_iter))
+    n_steps = m.UInt32(s.n_steps) + 1 if count_work else zero
     tri_cur, tri_end = m.UInt32(0), m.UInt32(0)
     done = m.Bool(False)
     next_treelet = m.UInt32(s.treelet)
@@ -140,6 +141,6 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
     out = RayState(t=t_best, u=u_best, v=v_best, prim=prim_best, link=link, sp=sp, slot=s.slot,
                    treelet=next_treelet)
     if count_work:
-        out.n_inner, out.n_leaf, out.n_tri, out.n_iter = n_inner, n_leaf, n_tri, n_iter
+        out.n_inner, out.n_leaf, out.n_tri, out.n_iter, out.n_steps = n_inner, n_leaf, n_tri, n_iter, n_steps
     local = [(m.UInt32(loc_link[k]), m.Float(loc_t[k])) for k in range(cap)]
     return out, done, nl, local

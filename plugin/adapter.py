@@ -13,6 +13,8 @@ import numpy as np
 
 import layerbvh
 
+# Per-ray work kept per sample for the traversal-cost heat maps (state.WORK names).
+HEATMAP_WORK = ("inner_nodes", "triangles", "steps")
 # Shapes traced by Mitsuba's own per-shape routine and merged with the BVH's closest hit.
 ANALYTIC = ("Sphere", "Disk", "Cylinder")
 
@@ -123,12 +125,25 @@ class SceneTracer:
     def reset_counters(self):
         self.trace_s = 0.0
         self.trace_stats = []
+        self.work = {}  # with counting: per sample, work summed over the camera query / the whole path
 
-    def _query(self, fn):
+    def _count(self, out, hint: str) -> None:
+        """Add a query's per-ray work (one ray per sample: the wavefront loop runs at full width)."""
+        if out.work is None:
+            return
+        for name in HEATMAP_WORK:
+            w = mi.UInt32(out.work[name])
+            keys = ("path", "camera") if hint == "camera" else ("path",)
+            for k in keys:
+                key = f"{k}_{name}"
+                self.work[key] = self.work[key] + w if key in self.work else w
+
+    def _query(self, fn, hint: str):
         t0 = time.perf_counter()
         out = fn()
         self.trace_s += time.perf_counter() - t0
         self.trace_stats.append(out.stats)
+        self._count(out, hint)
         return out
 
     # -- between kernels: traced in batches (any mode), statistics and recording possible ----------
@@ -142,7 +157,7 @@ class SceneTracer:
         if self.recorder is not None:
             self.recorder.add(hint if kind is None else kind, ray, active)
         hits = self._query(lambda: self.bvh.trace(ray.o, ray.d, ray.maxt, mode=self.traversal, stats=self.count_work,
-                                                  hint=hint, active=active))
+                                                  hint=hint, active=active), hint)
         return self._preliminary(ray, active, hits)
 
     def occluded(self, ray: mi.Ray3f, active) -> mi.Bool:
@@ -151,7 +166,7 @@ class SceneTracer:
         if self.recorder is not None:
             self.recorder.add("shadow", ray, active)
         occ = self._query(lambda: self.bvh.occluded(ray.o, ray.d, ray.maxt, mode=self.traversal,
-                                                    stats=self.count_work, hint="shadow", active=active))
+                                                    stats=self.count_work, hint="shadow", active=active), "shadow")
         return self._or_analytic(ray, active, mi.Bool(occ.occluded))
 
     # -- inside the caller's kernel: per_ray, no host synchronisation --------------------------------

@@ -42,6 +42,9 @@ def _parser() -> argparse.ArgumentParser:
     r = sub.add_parser("render", help="render with the layerbvh integrator to an EXR")
     common(r)
     r.add_argument("-o", "--output", required=True, help="output .exr")
+    r.add_argument("--heatmap", action="store_true",
+                   help="also write traversal-cost heat maps (OUT_heat_NAME.exr/.png: inner nodes, triangles and, in "
+                        "the layer modes, wavefront steps per pixel sample; from a counted pass at up to 4 spp)")
     c = sub.add_parser("compare", help="A/B: stock path (Embree) vs layerbvh, with metrics and an HTML report")
     common(c)
     c.add_argument("--out", required=True, help="output folder")
@@ -115,23 +118,32 @@ def _ours(mi, args, props, stats=False, traversal=None):
     return load_integrator(mi, d)
 
 
+STATS_SPP = 4  # spp of the separate counted pass (statistics, heat maps: work per ray needs few samples)
+
+
 def cmd_render(mi, args) -> int:
     scene = load_scene(mi, args.scene, args.res)
     spp = args.spp or scene_spp(scene)
-    integ = _ours(mi, args, path_settings(mi, scene, args.as_path).props)
+    props = path_settings(mi, scene, args.as_path).props
+    integ = _ours(mi, args, props)
     _check_memory(scene, spp, integ)  # builds the BVH (and refuses unsupported shapes) first
     img, secs = render_passes(mi, scene, integ, spp, args.seed, "layerbvh", not args.no_progress)
     if not np.isfinite(img).all():
         raise UserError(f"render produced {int((~np.isfinite(img)).any(-1).sum())} NaN/Inf pixels; nothing written")
     write_exr(args.output, img)
     st = integ.last_stats
+    if args.heatmap:
+        from .report import heatmap_png
+        counted = _ours(mi, args, props, stats=True)
+        render_passes(mi, scene, counted, min(spp, STATS_SPP), args.seed, "heat maps", not args.no_progress)
+        stem = str(Path(args.output).with_suffix(""))
+        for name, values in counted.heatmaps(scene).items():
+            write_exr(f"{stem}_heat_{name}.exr", np.repeat(values[:, :, None].astype(np.float32), 3, 2))
+            atomic.write_bytes(f"{stem}_heat_{name}.png", heatmap_png(values)[0])
     trace = f", trace {st['trace_s']:.2f} s" if st.get("trace_s") is not None else " (one kernel per pass)"
     print(f"wrote {args.output} ({img.shape[1]}x{img.shape[0]}, {spp} spp) in {secs:.2f} s; "
           f"BVH build {st.get('build_s', 0):.2f} s{trace}")
     return 0
-
-
-STATS_SPP = 4  # spp of compare's separate counted pass (work per ray needs few samples)
 
 
 def cmd_compare(mi, args) -> int:
@@ -159,6 +171,7 @@ def cmd_compare(mi, args) -> int:
     counted = _ours(mi, args, props, stats=True)
     stats_spp = min(spp, STATS_SPP)
     cs = timed_render(mi, scene, counted, stats_spp, args.seed, "statistics pass", progress)
+    heatmaps = counted.heatmaps(scene)
     traversal = {k: v for k, v in counted.last_stats.items() if k != "features"}
     bvh = run.get("bvh", {})
 
@@ -183,7 +196,7 @@ def cmd_compare(mi, args) -> int:
         info["embree_control"] = side(control)
         info["split"] = {"loop_s": control.seconds - st.seconds, "traversal_s": ou.seconds - control.seconds,
                          "ours_over_stock": ou.seconds / st.seconds if st.seconds else None}
-    rep = write_report(args.out, st.image, ou.image, info)
+    rep = write_report(args.out, st.image, ou.image, info, heatmaps)
     m = rep["metrics"]
     ratio = f" ({ou.seconds / st.seconds:.1f}x)" if st.seconds else ""
     split = (f"; our loop with Embree {control.seconds:.2f} s: traversal {ou.seconds - control.seconds:.2f} s, "

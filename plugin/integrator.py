@@ -9,6 +9,7 @@ from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 import layerbvh
 
@@ -171,6 +172,25 @@ class LayerBVHPathTracer:
                 except (OSError, ValueError):
                     pass  # nothing kept yet (or unreadable): decide again
         return self._state
+
+    def heatmaps(self, scene) -> dict:
+        """Traversal cost per pixel of the last counted render (`stats` true, wavefront loop): the
+        mean over each pixel's samples of the work of its camera ray and of its whole path (inner
+        nodes, triangles; wavefront steps in the layer modes), as (H, W) float64 arrays. Mitsuba
+        orders a pass's samples pixel by pixel, sample i belonging to pixel i // spp."""
+        tracer = self.scene_state(scene).tracer
+        if tracer is None or not tracer.work:
+            return {}
+        w, h = (int(x) for x in scene.sensors()[0].film().crop_size())
+        out = {}
+        for key, arr in tracer.work.items():
+            if key.endswith("_steps") and (key.startswith("camera") or self.traversal == "per_ray"):
+                continue  # per_ray: one kernel per query; not a map worth drawing
+            per_sample = np.asarray(arr, np.float64)
+            spp = len(per_sample) // (w * h)
+            name = key.replace("inner_nodes", "inner")
+            out[name] = per_sample[: w * h * spp].reshape(h, w, spp).mean(-1)
+        return out
 
     def calibration_s(self) -> float:
         """Seconds auto has spent timing modes for the current scene, all renders together."""

@@ -91,7 +91,8 @@ def _write_all(tmp: Path, stock: np.ndarray, ours: np.ndarray, rep: dict, flip_m
                                                            f"top is its {DIFF_PERCENTILE:g}th percentile")),
             "ꟻLIP": ("flip.png", page.colour_bar("magma", "0", "1", "ꟻLIP error per pixel (0 = identical)"))}
     heat = []
-    for name, img in heatmaps.items():
+    for name, img in sorted(heatmaps.items(), key=lambda kv: list(HEATMAP_TITLES).index(kv[0])
+                            if kv[0] in HEATMAP_TITLES else len(HEATMAP_TITLES)):
         png, top = heatmap_png(img)
         _write_bytes(tmp / f"heat_{name}.png", png)
         write_exr(tmp / f"heat_{name}.exr", np.repeat(img[:, :, None], 3, 2))
