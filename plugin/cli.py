@@ -51,6 +51,8 @@ def _parser() -> argparse.ArgumentParser:
     v.add_argument("--cache", help="reference cache folder (default $XDG_CACHE_HOME/layerbvh/references)")
     v.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb, cuda_ad_rgb)")
     v.add_argument("--no-progress", action="store_true")
+    from .sweep import add_parser as add_sweep
+    add_sweep(sub)
     return p
 
 
@@ -163,6 +165,9 @@ def cmd_compare(mi, args) -> int:
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
+        if args.command == "sweep":  # checks its own options; Mitsuba runs in the points' processes only
+            from .sweep import run_command as sweep
+            return sweep(args)
         _check_args(args)
         mi = use_variant(args.variant)
         from .adapter import UnsupportedShapeError
