@@ -18,8 +18,10 @@ import time
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Callable
 
 from . import atomic
+from .integrator import EMBREE
 from .render import UserError
 
 EXCLUSIVE = "exclusive"  # Dask worker resource held by timed points: one per machine, so they never overlap
@@ -69,12 +71,12 @@ class Job:
 
     name: str
     timed: bool  # timed points take the EXCLUSIVE resource: one at a time per machine
-    label: callable  # settings -> the config column
+    label: Callable[[dict], str]  # settings -> the config column
 
 
 JOBS = {
     "compare": Job("compare", False,
-                   lambda s: s["traversal"] if s["traversal"] == "embree" else f"{s['traversal']} h={s['treelet_height']}"),
+                   lambda s: s["traversal"] if s["traversal"] == EMBREE else f"{s['traversal']} h={s['treelet_height']}"),
     "converge": Job("converge", True, lambda s: s["config"]),
     "bench": Job("bench", True, lambda s: f"{s['rays']} rays h={','.join(map(str, s['heights']))}"),
     "third_party": Job("third_party", False, lambda s: s["traversal"]),
@@ -93,9 +95,9 @@ def code_digest() -> str:
     """SHA-256 of the engine's and the plugin's Python sources: a result computed by other code is not reused."""
     import layerbvh
     h = hashlib.sha256()
-    for base in (Path(layerbvh.__file__).parent, Path(__file__).parent):
+    for package, base in (("layerbvh", Path(layerbvh.__file__).parent), ("layerbvh_mitsuba", Path(__file__).parent)):
         for path in sorted(base.rglob("*.py")):
-            h.update(f"{base.name}/{path.relative_to(base).as_posix()}".encode() + b"\0")
+            h.update(f"{package}/{path.relative_to(base).as_posix()}".encode() + b"\0")
             h.update(hashlib.sha256(path.read_bytes()).digest())
     return h.hexdigest()[:16]
 
@@ -290,6 +292,22 @@ def local_cluster(n: int):
     return SpecCluster(scheduler=scheduler, workers=workers, silence_logs=logging.ERROR, name="layerbvh-sweep")
 
 
+@contextlib.contextmanager
+def _sigint_ignored():
+    """Processes started inside inherit SIGINT ignored: Ctrl-C (sent to the whole process group)
+    reaches the sweep alone, which stops them in order instead of each dying with a traceback."""
+    import signal
+    try:
+        old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:  # not the main thread: nothing to change
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
 def scheduler_address(text: str) -> str:
     """ADDRESS, HOST:PORT or the JSON file `dask scheduler --scheduler-file` writes."""
     if Path(text).is_file():
@@ -315,7 +333,8 @@ def dask_client(workers: int | None, scheduler: str | None):
             except (OSError, TimeoutError) as e:
                 raise UserError(f"--scheduler {scheduler}: cannot connect to {address} ({e})") from None
         else:
-            cluster = local_cluster(workers)
+            with _sigint_ignored():
+                cluster = local_cluster(workers)
             client = Client(cluster)
         try:
             yield client
@@ -533,7 +552,7 @@ def add_parser(sub) -> None:
                    help="seconds per point; a point past it is killed and recorded (default %(default)g)")
     s.add_argument("--memory-limit", type=float, metavar="GIB",
                    help=f"resident memory per point in GiB; a point above it is killed and recorded (default "
-                        f"{MEMORY_SHARE:g} x the host's RAM / the local workers)")
+                        f"{MEMORY_SHARE:g} x the host's RAM, divided among the local workers for untimed jobs)")
     s.add_argument("--rerun", action="store_true", help="run every point again, ignoring stored results")
     s.add_argument("--no-progress", action="store_true")
 
@@ -578,7 +597,7 @@ def grid(args) -> list[dict]:
     res = list(args.res) if args.res else None
     seed = 0 if args.seed is None else args.seed
     if args.job == "compare":
-        from .integrator import EMBREE, check_settings
+        from .integrator import check_settings
         spps = _int_list(args.spp, "--spp") if args.spp else [None]
         if any(s is not None and s < 1 for s in spps):
             raise UserError(f"--spp must be >= 1, got {args.spp}")
