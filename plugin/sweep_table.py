@@ -199,7 +199,7 @@ def index_html(res, rows: list[dict], job: str, command: str) -> str:
         rep = f'<a href="{esc(r["report"])}">{esc(Path(r["report"]).name)}</a>' if r["report"] else ""
         log = f'<a href="{esc(r["dir"])}/log.txt">log</a>' if r["status"] != "not run" else ""
         body.append(f"<tr{style}>{cells}<td>{rep}</td><td>{log}</td></tr>")
-    info = "".join(f"<p>{esc(x)}</p>" for x in _headline(res, job, command) if x)
+    info = (f"<p><code>{esc(command)}</code></p>" if command else "") + f"<p>{esc(_headline(res, job, command)[1])}</p>"
     return ("<!DOCTYPE html>\n<html lang=\"en\">\n<head>\n<meta charset=\"utf-8\">\n"
             f"<title>sweep: {esc(job)}</title>\n<style>body{{font-family:sans-serif;margin:1.5em}}"
             "table{border-collapse:collapse}td,th{border:1px solid #bbb;padding:2px 6px;text-align:left}"
