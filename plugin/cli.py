@@ -65,6 +65,8 @@ def _parser() -> argparse.ArgumentParser:
     v.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant: any llvm_* or cuda_* (default %(default)s)")
     v.add_argument("--as-path", action="store_true", help=AS_PATH_HELP)
     v.add_argument("--no-progress", action="store_true")
+    from .sweep import add_parser as add_sweep
+    add_sweep(sub)
     return p
 
 
@@ -219,6 +221,9 @@ def main(argv=None) -> int:
 
 def _run(args) -> int:
     try:
+        if args.command == "sweep":  # checks its own options; Mitsuba runs in the points' processes only
+            from .sweep import run_command as sweep
+            return sweep(args)
         _check_args(args)
         mi = use_variant(args.variant)
         from .adapter import UnsupportedShapeError

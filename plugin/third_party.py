@@ -1,4 +1,4 @@
-"""A/B check on third-party scenes: stock `path` vs the `layerbvh` integrator, same seed, one subprocess per scene.
+"""A/B check on third-party scenes: stock `path` vs the `layerbvh` integrator, same seed, each scene a point of a `layerbvh sweep` (its own process).
 
 For every scene found under --root (default ../shared/assets relative to the repository root) it
 loads the scene with the project's loader (`cli.load_scene`, film resized to --res), renders stock
@@ -11,11 +11,15 @@ integrator's settings when they can be read, else path's defaults, and the table
     .venv/bin/python scripts/third_party.py [--root DIR] [--res W H] [--spp N] [--seed S]
         [--traversal per_ray|layer_sorted|layer_unsorted] [--check-rays N] [--timeout SECONDS]
         [--scenes GLOB ...] [--md OUT.md] [--json OUT.json] [--readme]
+        [--out SWEEP_DIR] [--workers N | --scheduler ADDRESS] [--rerun]
+
+The scenes run as points of `layerbvh sweep` (sweep.py: Dask, a fresh process per scene, resumable:
+a scene whose content, settings and code are unchanged is not run again unless --rerun).
 
 Result column: `works` (>= 99.9% of pixels within 1e-3 abs in every channel and mean |diff| <=
 1e-4 x mean pixel value), `works (specular tolerance)` (>= 99% within 1e-3), `differs` (with the
 numbers), `refused: ...` (our backend refuses a plugin), `fails in stock Mitsuba: ...`, or
-`error in layerbvh: ...` / `timeout` / `crashed` when something else goes wrong. Where the
+`error in layerbvh: ...` / `killed: time limit ...` / `crashed ...` when something else goes wrong. Where the
 same-seed result is not `works`, the per-pixel Z-test of `testing.assert_statistically_matches_stock`
 (64 spp, 16x12, 8 seeds each) is run and its pass rate added.
 """
@@ -27,14 +31,13 @@ import json
 import os
 import re
 import shlex
-import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 
 from . import atomic
+from .metrics import SAME_SEED_MAX_MEAN_REL, SAME_SEED_MIN_FRAC, SAME_SEED_TOL
 from .repo import ROOT
 
 # The scenes of the task (PROVENANCE.md of shared/assets), as globs relative to --root.
@@ -53,14 +56,20 @@ DEFAULT_SCENES = (
     "mitsuba/tests/orthographic_sensor/*.xml",
 )
 
-TOL = 1e-3            # per-pixel absolute tolerance (every channel)
-MIN_FRAC = 0.999      # testing.assert_matches_stock's default
-MAX_MEAN_REL = 1e-4   # testing.assert_matches_stock's default
+TOL = SAME_SEED_TOL    # per-pixel absolute tolerance (every channel)
 SPECULAR_FRAC = 0.99  # "works (specular tolerance)"
 
 
+def verdict_label(frac_within: float, mean_abs: float, mean_ref: float) -> str:
+    """`works` (metrics.same_seed_verdict's criterion, as in testing.assert_matches_stock),
+    `works (specular tolerance)` or `differs`."""
+    if frac_within >= SAME_SEED_MIN_FRAC and mean_abs <= SAME_SEED_MAX_MEAN_REL * mean_ref:
+        return "works"
+    return "works (specular tolerance)" if frac_within >= SPECULAR_FRAC else "differs"
+
+
 # ------------------------------------------------------------------------------------------------
-# Worker: one scene, in its own process. Writes a JSON record to --worker-out.
+# One scene, in its own process (a sweep point: sweep_point.run_third_party).
 # ------------------------------------------------------------------------------------------------
 
 def _xml_text(path: Path, seen=None) -> str:
@@ -92,7 +101,7 @@ def _finite(img, np):
     return (np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0) if bad else img), bad
 
 
-def _one_line(e: BaseException) -> str:
+def one_line(e: BaseException) -> str:
     """The last line of the innermost exception (Dr.Jit wraps the real error as "see above")."""
     chain = [e]
     while (c := chain[-1].__cause__ or chain[-1].__context__) is not None and c not in chain:
@@ -149,7 +158,7 @@ def run_worker(args) -> dict:
         rec["result"] = f"fails in stock Mitsuba: {str(e).split(': ', 1)[-1] if ': ' in str(e) else e}"
         return rec
     except Exception as e:
-        rec["result"] = f"fails in stock Mitsuba: {_one_line(e)}"
+        rec["result"] = f"fails in stock Mitsuba: {one_line(e)}"
         return rec
     rec["triangles"], rec["other_shapes"] = _shape_counts(scene)
     # The table compares every scene as path and says so where its integrator is another one.
@@ -170,30 +179,30 @@ def run_worker(args) -> dict:
     try:
         stock = mi.load_dict({"type": "path", **props})
     except Exception as e:
-        rec["result"] = f"error: path with the scene's settings {props}: {_one_line(e)}"
+        rec["result"] = f"error: path with the scene's settings {props}: {one_line(e)}"
         return rec
     try:
         stock_img, rec["stock_s"] = render_passes(mi, scene, stock, args.spp, args.seed, "stock", False)
     except Exception as e:
-        rec["result"] = f"fails in stock Mitsuba: {_one_line(e)}"
+        rec["result"] = f"fails in stock Mitsuba: {one_line(e)}"
         return rec
 
     try:
         ours = mi.load_dict({"type": "layerbvh", "traversal": args.traversal, **props})
         ours.tracer(scene)  # builds the BVH; refuses unsupported shapes by name
     except UnsupportedShapeError as e:
-        rec["result"] = f"refused: {_one_line(e)}"
+        rec["result"] = f"refused: {one_line(e)}"
         return rec
     except Exception as e:
-        rec["result"] = f"error in layerbvh (setup/BVH build): {_one_line(e)}"
+        rec["result"] = f"error in layerbvh (setup/BVH build): {one_line(e)}"
         return rec
     try:
         ours_img, rec["ours_s"] = render_passes(mi, scene, ours, args.spp, args.seed, "layerbvh", False)
     except UnsupportedShapeError as e:
-        rec["result"] = f"refused: {_one_line(e)}"
+        rec["result"] = f"refused: {one_line(e)}"
         return rec
     except Exception as e:
-        rec["result"] = f"error in layerbvh (render): {_one_line(e)}"
+        rec["result"] = f"error in layerbvh (render): {one_line(e)}"
         return rec
     rec["ray_check"] = ray_check(ours.tracer(scene), args.check_rays, args.seed)
     rec["ours_build_s"] = float(ours.last_stats.get("build_s", 0.0))
@@ -213,13 +222,10 @@ def run_worker(args) -> dict:
     rec["same_seed"] = {"frac_within_1e-3": frac, "mean_abs": mean_abs, "mean_ref": mean_ref,
                         "max_abs": float(d.max()), "channels": int(stock_img.shape[-1])}
     rec["metrics"] = compare_images(stock_img, ours_img)
-    if frac >= MIN_FRAC and mean_abs <= MAX_MEAN_REL * mean_ref:
-        rec["result"] = "works"
-    elif frac >= SPECULAR_FRAC:
-        rec["result"] = "works (specular tolerance)"
-    else:
-        rec["result"] = (f"differs: {100 * frac:.2f}% within 1e-3, mean |diff| {mean_abs:.3g} "
-                         f"(mean pixel {mean_ref:.3g}), max |diff| {float(d.max()):.3g}")
+    rec["result"] = verdict_label(frac, mean_abs, mean_ref)
+    if rec["result"] == "differs":
+        rec["result"] += (f": {100 * frac:.2f}% within 1e-3, mean |diff| {mean_abs:.3g} "
+                          f"(mean pixel {mean_ref:.3g}), max |diff| {float(d.max()):.3g}")
     if rec["result"] != "works":
         # Same-seed paths diverge after one different hit (e.g. a tie, see ray_check); whether
         # the two estimators still agree is a question for the statistical test.
@@ -252,8 +258,12 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--md", help="also write the markdown table here (atomically)")
     p.add_argument("--json", help="write the raw figures here as JSON (atomically)")
     p.add_argument("--readme", action="store_true", help="also splice the table into README.md (section third_party)")
-    p.add_argument("--worker", help=argparse.SUPPRESS)
-    p.add_argument("--worker-out", help=argparse.SUPPRESS)
+    p.add_argument("--out", default=str(ROOT / "out" / "third_party"),
+                   help="the sweep folder (points, results.csv, summary.md, index.html; default out/third_party)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=int, help="processes of a local Dask cluster (default: cores)")
+    where.add_argument("--scheduler", help="an existing Dask scheduler (address or scheduler file)")
+    p.add_argument("--rerun", action="store_true", help="run every scene again, ignoring stored results")
     return p
 
 
@@ -269,30 +279,15 @@ def _find_scenes(root: Path, patterns) -> tuple[list[Path], list[str]]:
     return found, missing
 
 
-def _run_scene(args, scene: Path) -> dict:
-    fd, out = tempfile.mkstemp(suffix=".json", prefix="third_party-")
-    os.close(fd)
-    cmd = [sys.executable, "-m", "layerbvh_mitsuba.third_party", "--worker", str(scene), "--worker-out", out,
-           "--res", *map(str, args.res), "--spp", str(args.spp), "--seed", str(args.seed),
-           "--traversal", args.traversal, "--variant", args.variant, "--check-rays", str(args.check_rays)]
-    t0 = time.perf_counter()
-    try:
-        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=args.timeout, cwd=ROOT)
-        wall = time.perf_counter() - t0
-        text = Path(out).read_text() if Path(out).stat().st_size else ""
-        if proc.returncode == 0 and text:
-            rec = json.loads(text)
-        else:
-            tail = [ln for ln in (proc.stderr or proc.stdout or "").strip().splitlines() if ln.strip()]
-            rec = {"result": f"crashed (exit {proc.returncode}): {tail[-1].strip()[:300] if tail else 'no output'}",
-                   "notes": []}
-    except subprocess.TimeoutExpired:
-        wall = time.perf_counter() - t0
-        rec = {"result": f"timeout after {args.timeout:g} s", "notes": []}
-    finally:
-        Path(out).unlink(missing_ok=True)
-    rec["wall_s"] = wall
-    return rec
+def _record(stored: dict | None) -> dict:
+    """A scene's row from its sweep result: run_worker's record, or the reason there is none."""
+    if stored is None:
+        return {"result": "not run (sweep interrupted)", "notes": []}
+    if stored["status"] == "ok":
+        return {**stored["figures"], "wall_s": stored["wall_s"], "host": stored["host"]}
+    error = stored["error"]  # killed/crashed say so; an exception inside run_worker is a crash too
+    return {"result": error if stored["status"] != "error" else f"crashed: {error}", "notes": [],
+            "wall_s": stored["wall_s"], "host": stored["host"]}
 
 
 def _shown(path: str) -> str:
@@ -304,7 +299,7 @@ def _fmt(x, spec):
     return "-" if x is None else format(x, spec)
 
 
-def _markdown(cmdline: str, args, rows, missing, total_s) -> str:
+def _markdown(cmdline: str, args, rows, missing, total: str) -> str:
     lines = [f"`{cmdline}`", "",
              f"Stock `path` vs `layerbvh` (traversal `{args.traversal}`), same seed {args.seed}, "
              f"{args.spp} spp, {args.res[0]}x{args.res[1]}, variant `{args.variant}`, root `{_shown(args.root)}`. "
@@ -313,7 +308,8 @@ def _markdown(cmdline: str, args, rows, missing, total_s) -> str:
              f"get another triangle from ours than from Embree, and in brackets how many of those are ties: both "
              f"triangles at the same distance (float64) up to float32 resolution of the coordinates (shared edges, coplanar "
              f"overlapping triangles), where either answer is right; seconds are `cli.render_passes` wall time and include LLVM JIT compilation (Dr.Jit caches kernels "
-             f"on disk, so a first run on a cold cache is far slower).", "",
+             f"on disk, so a first run on a cold cache is far slower) and, with several sweep workers on one machine, "
+             f"scenes rendering side by side on its cores.", "",
              "| scene | triangles | other shapes | result | within 1e-3 | mean abs | max abs | FLIP mean "
              "| rel_mse | rays: other prim (ties) | stock s | ours s | notes |",
              "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
@@ -335,25 +331,22 @@ def _markdown(cmdline: str, args, rows, missing, total_s) -> str:
         lines.append("| " + " | ".join(cells) + " |")
     for pat in missing:
         lines.append(f"\nNot found under root (skipped): `{pat}`")
-    lines.append(f"\nTotal: {len(rows)} scenes in {total_s:.1f} s.")
+    lines.append(f"\nTotal: {len(rows)} scenes in {total}.")
     return "\n".join(lines) + "\n"
 
 
 def main(argv=None) -> int:
+    from .render import UserError
+    from .sweep import Limits, make_points, run_sweep
     args = _parser().parse_args(argv)
-    if args.worker:
-        try:
-            rec = run_worker(args)
-        except Exception as e:  # anything unexpected still becomes one line in the table
-            rec = {"result": f"crashed: {type(e).__name__}: {_one_line(e)}", "notes": []}
-        Path(args.worker_out).write_text(json.dumps(rec))
-        return 0
-
     cmdline = shlex.join(getattr(sys, "orig_argv", [sys.executable, *sys.argv]))
     args.root = str(Path(args.root).resolve())
     import layerbvh
     if args.traversal not in layerbvh.MODES:
         print(f"third_party: --traversal must be one of {', '.join(layerbvh.MODES)}", file=sys.stderr)
+        return 2
+    if args.workers is not None and args.workers < 1:
+        print(f"third_party: --workers must be >= 1, got {args.workers}", file=sys.stderr)
         return 2
     root = Path(args.root)
     if not root.is_dir():
@@ -362,15 +355,23 @@ def main(argv=None) -> int:
     scenes, missing = _find_scenes(root, args.scenes)
     for pat in missing:
         print(f"note: {pat} not found under {root}; skipped", file=sys.stderr)
-    rows = []
-    t0 = time.perf_counter()
-    for scene in scenes:
-        rel = scene.relative_to(root).as_posix()
-        print(f"[{len(rows) + 1}/{len(scenes)}] {rel} ...", file=sys.stderr, flush=True)
-        rec = {"scene": rel, **_run_scene(args, scene)}
-        print(f"    {rec['result']} ({rec['wall_s']:.1f} s)", file=sys.stderr, flush=True)
-        rows.append(rec)
-    total = time.perf_counter() - t0
+    settings = {"traversal": args.traversal, "res": list(args.res), "spp": args.spp, "seed": args.seed,
+                "variant": args.variant, "check_rays": args.check_rays}
+    points = make_points("third_party", [(str(s), s.relative_to(root).as_posix()) for s in scenes], [settings])
+    workers = None if args.scheduler else (args.workers or os.cpu_count() or 1)
+    try:
+        sweep = run_sweep(points, args.out, workers=workers, scheduler=args.scheduler, rerun=args.rerun,
+                          limits=Limits(timeout_s=args.timeout, slots=workers or 1), command=cmdline)
+    except UserError as e:
+        print(f"third_party: {e}", file=sys.stderr)
+        return 2
+    rows = [{"scene": p.name, **_record(r)} for p, r in zip(points, sweep.results)]
+    for r in rows:
+        print(f"{r['scene']}: {r['result']}", file=sys.stderr)
+    reused = len(points) - len(sweep.ran)
+    where = f"scheduler {args.scheduler}" if args.scheduler else f"{workers} local worker{'s' * (workers > 1)}"
+    total = (f"{sweep.wall_s:.1f} s (sweep wall time, {where}"
+             + (f"; {reused} scenes reused from {_shown(str(sweep.out))}" if reused else "") + ")")
     md = _markdown(cmdline, args, rows, missing, total)
     sys.stdout.write(md)
     if args.md:
@@ -381,9 +382,10 @@ def main(argv=None) -> int:
     if args.json:
         raw = {"command": cmdline, "root": args.root, "res": args.res, "spp": args.spp, "seed": args.seed,
                "traversal": args.traversal, "variant": args.variant, "timeout_s": args.timeout,
-               "total_s": total, "missing": missing, "scenes": rows}
+               "total_s": sweep.wall_s, "sweep": str(sweep.out), "cluster": sweep.cluster, "reused": reused,
+               "missing": missing, "scenes": rows}
         atomic.write_text(args.json, json.dumps(raw, indent=2) + "\n")
-    return 0
+    return 130 if sweep.interrupted else 0
 
 
 if __name__ == "__main__":

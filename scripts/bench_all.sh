@@ -1,18 +1,27 @@
 #!/usr/bin/env bash
-# Reproduce BENCHMARKS.md: record ray sets, run the traversal and scaling benchmarks, the
-# error-vs-time run, and generate the report (about 40 minutes on 2 cores). Run after
-# scripts/bootstrap.sh (or scripts/test.sh) has created .venv.
+# Reproduce BENCHMARKS.md: the traversal benchmark on generated meshes, the recorded-ray grid and
+# the error-vs-time run as `layerbvh sweep` grids (timed points one at a time), the scaling
+# benchmark, and the report (about 40 minutes on 2 cores). Run after scripts/bootstrap.sh (or
+# scripts/test.sh) has created .venv. SWEEP_ARGS="--scheduler ADDRESS" runs the grids on a Dask
+# cluster instead of local worker processes (its machines need the repository at the same path).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=.venv/bin/python
-mkdir -p out/rays
+LAYERBVH=.venv/bin/layerbvh
+SWEEP_ARGS=${SWEEP_ARGS:-}
 $PY scripts/gen_stress.py spheres --triangles 1000000 --out out/stress_spheres_1m --force
-$PY scripts/record_rays.py scenes/paper_mix.xml --out out/rays/paper_mix.npz --res 512 512 --spp 4
-$PY scripts/record_rays.py out/stress_spheres_1m/scene.xml --out out/rays/stress_spheres_1m.npz --res 512 512 --spp 4
-$PY scripts/bench_traversal.py --rays-file out/rays/paper_mix.npz --rays-file out/rays/stress_spheres_1m.npz \
-    --heights 4,8,12 --runs 5 --json docs/bench/bench.json
+# Generated meshes (the procedural sphere soup and the bunny are meshes, not scenes): one process.
+$PY scripts/bench_traversal.py --heights 4,8,12 --runs 5 --json docs/bench/bench_meshes.json
+# Rays recorded from two scenes at 512x512, 4 spp (cached per scene): one point per scene and ray kind.
+$LAYERBVH sweep scenes/paper_mix.xml out/stress_spheres_1m/scene.xml --job bench \
+    --rays camera,first_bounce_diffuse,diffuse,glossy,specular,shadow --treelet-heights 4,8,12 --runs 5 \
+    --res 512 512 --spp 4 --rerun --out out/sweep_bench $SWEEP_ARGS
+cp out/sweep_bench/bench.json docs/bench/bench.json
 $PY scripts/bench_scaling.py --heights 4,8 --json docs/bench/scaling.json
-.venv/bin/layerbvh converge scenes/paper_mix.xml --budget 40 --res 128 128 --ref-spp 4096 \
-    --configs stock,per_ray,layer_sorted:8,auto --out docs/converge/paper_mix
-$PY scripts/report.py --bench docs/bench/bench.json --scaling docs/bench/scaling.json \
-    --converge docs/converge/paper_mix --readme
+# Error against time: one point per configuration, merged per scene by the sweep.
+$LAYERBVH sweep scenes/paper_mix.xml --job converge --budget 40 --res 128 128 --ref-spp 4096 \
+    --configs stock,per_ray,layer_sorted:8,auto --rerun --out out/sweep_converge $SWEEP_ARGS
+rm -rf docs/converge/paper_mix
+cp -r out/sweep_converge/converge/paper_mix docs/converge/paper_mix
+$PY scripts/report.py --bench docs/bench/bench_meshes.json --bench docs/bench/bench.json \
+    --scaling docs/bench/scaling.json --converge docs/converge/paper_mix --readme

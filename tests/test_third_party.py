@@ -36,7 +36,8 @@ def test_table_has_a_verdict_per_scene_and_names_refused_plugins(tmp_path):
     md, js = tmp_path / "table.md", tmp_path / "table.json"
     proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "third_party.py"), "--root", str(root),
                            "--scenes", "cbox.xml", "instanced.xml", "missing/*.xml", "--res", "16", "16",
-                           "--spp", "4", "--check-rays", "20000", "--md", str(md), "--json", str(js)],
+                           "--spp", "4", "--check-rays", "20000", "--md", str(md), "--json", str(js),
+                           "--out", str(tmp_path / "sweep"), "--workers", "2"],
                           capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr
     rows = {r["scene"]: r for r in json.loads(js.read_text())["scenes"]}
@@ -50,3 +51,7 @@ def test_table_has_a_verdict_per_scene_and_names_refused_plugins(tmp_path):
     table = md.read_text()
     assert "| `cbox.xml` | 36 |" in table and "Not found under root (skipped): `missing/*.xml`" in table
     assert not list(tmp_path.glob(".*.tmp*")), "temporary files left behind"
+    # Each scene was a point of the sweep (its own process), with its row in the sweep's table too.
+    sweep_rows = {r["scene"]: r for r in json.loads((tmp_path / "sweep" / "results.json").read_text())["rows"]}
+    assert sweep_rows["cbox.xml"]["result"] == "works" and sweep_rows["instanced.xml"]["result"] == refused
+    assert all(r["host"] and r["status"] == "ok" for r in sweep_rows.values())

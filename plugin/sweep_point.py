@@ -1,0 +1,224 @@
+"""One sweep point in its own process: runs the job (compare, converge, bench, third-party check) and writes its figures to result.json.
+
+    python -m layerbvh_mitsuba.sweep_point POINT.json OUT_DIR
+
+POINT.json is a `sweep.Point` as a dict. Files the job writes go under OUT_DIR; result.json
+(`status`, `figures` or `error`, `point_s`, `peak_rss_bytes`) is written last. The sweep's task
+starts this process, enforces the time and memory limits and sends everything back.
+"""
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import os
+import resource
+import signal
+import sys
+import time
+import traceback
+from pathlib import Path
+
+GENERATED_SEED_OFFSET = {"coherent": 1, "incoherent": 2}  # bench_traversal's seeds of its generated ray sets
+
+
+class PointError(Exception):
+    """The job reported a problem with this point (one line, for the table)."""
+
+
+def _die_with_parent() -> None:
+    """Linux: be killed when the sweep's worker goes (Ctrl-C, cluster shut down), never left running."""
+    parent = int(os.environ.get("LAYERBVH_SWEEP_PARENT", "0"))
+    try:
+        import ctypes
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if parent and os.getppid() != parent:  # the parent went before the line above
+        os._exit(1)
+
+
+class _Tee(io.TextIOBase):
+    def __init__(self, *streams):
+        self.streams = streams
+
+    def write(self, s):
+        for st in self.streams:
+            st.write(s)
+        return len(s)
+
+    def flush(self):
+        for st in self.streams:
+            st.flush()
+
+
+def _cli(argv: list[str]) -> None:
+    """`layerbvh ARGV` in this process; its one-line error (`layerbvh: error: ...`) becomes a PointError."""
+    from .cli import main
+    buf = io.StringIO()
+    with contextlib.redirect_stderr(_Tee(sys.stderr, buf)):
+        rc = main(argv)
+    if rc != 0:
+        lines = [ln.strip() for ln in buf.getvalue().splitlines() if ln.strip()]
+        errors = [ln.split("error:", 1)[1].strip() for ln in lines if ln.startswith("layerbvh: error:")]
+        raise PointError(errors[-1] if errors else (lines[-1] if lines else f"layerbvh exited with {rc}"))
+
+
+def _res_args(s: dict) -> list[str]:
+    return ["--res", *map(str, s["res"])] if s.get("res") else []
+
+
+# -- jobs -------------------------------------------------------------------------------------------
+
+
+def run_compare(point: dict, out: Path) -> dict:
+    """`layerbvh compare` on the point's scene and configuration; its metrics, times and verdict."""
+    from .third_party import verdict_label
+    s = point["settings"]
+    _cli(["compare", point["scene"], "--seed", str(s["seed"]), "--traversal", s["traversal"],
+          "--treelet-height", str(s["treelet_height"]), "--variant", s["variant"], "--out", str(out / "compare"),
+          "--no-progress", *(["--spp", str(s["spp"])] if s.get("spp") else []), *_res_args(s)])
+    rep = json.loads((out / "compare" / "report.json").read_text())
+    m, ours, split = rep["metrics"], rep["ours"], rep.get("split") or {}
+    within = 1.0 - m["frac_pixels_over_1e-3"]
+    return {"report": "compare/index.html", "spp": rep["spp"], "resolution": rep["resolution"],
+            "triangles": rep.get("traversal", {}).get("bvh", {}).get("triangles"),
+            "verdict": verdict_label(within, m["mean_abs"], m["mean_ref"]), "within_1e-3": within,
+            **{k: m[k] for k in ("rmse", "rel_mse", "flip_mean", "delta_e2000_mean", "delta_e2000_p95", "max_abs",
+                                 "mean_abs")},
+            "stock_s": rep["stock"]["render_s"], "control_s": (rep.get("embree_control") or {}).get("render_s"),
+            "ours_s": ours["render_s"], "ours_over_stock": split.get("ours_over_stock"),
+            "traversal_s": split.get("traversal_s"), "loop_s": split.get("loop_s"), "build_s": ours["build_s"],
+            "compile_s": ours["compile_s"], "calibration_s": ours["calibration_s"]}
+
+
+def _triangles(point: dict) -> int:
+    """Mesh triangles of the point's scene (a load of its own: converge does not report them)."""
+    from .render import load_scene, use_variant
+    mi = use_variant(point["settings"]["variant"])
+    return sum(int(sh.face_count()) for sh in load_scene(mi, point["scene"]).shapes() if sh.is_mesh())
+
+
+def run_converge(point: dict, out: Path) -> dict:
+    """`layerbvh converge` for one configuration; its last point, slopes and the separate costs."""
+    s = point["settings"]
+    _cli(["converge", point["scene"], "--budget", repr(s["budget"]), "--configs", s["config"],
+          "--ref-spp", str(s["ref_spp"]), "--variant", s["variant"], "--out", str(out / "converge"), "--no-progress",
+          *(["--max-spp", str(s["max_spp"])] if s.get("max_spp") else []), *_res_args(s)])
+    doc = json.loads((out / "converge" / "convergence.json").read_text())
+    c = doc["configs"][0]
+    last, fit = c["points"][-1], c["fit"]
+
+    def slope(name):
+        return fit[name] and fit[name]["slope"]
+    return {"report": "converge/convergence.png", "resolution": doc["resolution"], "spp": last["spp"],
+            "triangles": _triangles(point),
+            "spp_reached": last["spp"], "seconds": last["seconds"], "rel_mse": last["rel_mse"], "flip": last["flip"],
+            "delta_e2000": last["delta_e2000"], "slope_rel_mse_vs_spp": slope("rel_mse_vs_spp"),
+            "slope_rel_mse_vs_seconds": slope("rel_mse_vs_seconds"), "build_s": c["build_s"],
+            "compile_s": c["compile_s"], "calibration_s": c["calibration_s"],
+            "reference_s": doc["reference"]["render_s"], "reference_cached": doc["reference"]["cached"]}
+
+
+def _recorded_rays(mi, point: dict, kind: str):
+    """(vertices, faces, o, d, tmax, source) of one recorded kind; the recording of the scene at the point's
+    resolution, spp and seed is kept in the cache (keyed like converge's references) for the other kinds."""
+    from . import record
+    from .bench.record_rays import record_scene
+    from .converge import reference_key
+    from .render import cache_dir
+    s = point["settings"]
+    what = {"record": {"res": s["res"], "spp": s["spp"], "seed": s["seed"], "cap": s["ray_count"]},
+            "variant": s["variant"], "mitsuba": mi.__version__}
+    path = cache_dir("rays") / f"{reference_key(Path(point['scene']), what)[:24]}.npz"
+    if not path.is_file():
+        rec, geometry, meta, _ = record_scene(mi, point["scene"], s["res"], s["spp"], s["seed"], s["ray_count"])
+        rec.save(path, geometry.vertices, geometry.faces, meta)
+    v, f, rays, meta = record.load(path)
+    if kind not in rays:
+        raise PointError(f"the render traced no {kind} rays ({s['res'][0]}x{s['res'][1]}, {s['spp']} spp)")
+    o, d, tmax = rays[kind]
+    return v, f, o, d, tmax, (f"recorded from {meta['scene']} ({meta['resolution'][0]}x{meta['resolution'][1]}, "
+                              f"{meta['spp']} spp)")
+
+
+def run_bench(point: dict, out: Path) -> dict:
+    """The traversal benchmark (bench/traversal.py) on one ray set of the scene: Embree and every mode ×
+    treelet height plus auto, interleaved in this process; the headline figures (best height of each)."""
+    from types import SimpleNamespace
+
+    import layerbvh
+
+    from .adapter import collect_geometry
+    from .bench import meshes
+    from .bench import report as bench_report
+    from .bench import traversal
+    from .render import load_scene, use_variant
+    from .sweep import short_name
+    s = point["settings"]
+    kind, n = s["rays"], s["ray_count"]
+    mi = use_variant(s["variant"])
+    if kind in GENERATED_SEED_OFFSET:
+        g = collect_geometry(load_scene(mi, point["scene"]))
+        v, f = g.vertices, g.faces
+        if len(f) == 0:
+            raise PointError("the scene has no triangles to bench")
+        gen = meshes.camera_rays if kind == "coherent" else meshes.incoherent_rays
+        o, d = gen(v, n, seed=s["seed"] + GENERATED_SEED_OFFSET[kind])
+        ray_set, source = (kind, o, d, None, False), "generated"
+    else:
+        v, f, o, d, tmax, source = _recorded_rays(mi, point, kind)
+        ray_set = (kind, o[:n], d[:n], tmax[:n], kind == "shadow")
+    args = SimpleNamespace(heights=s["heights"], runs=s["runs"], backend="llvm", batch_rays=layerbvh.BATCH_RAYS)
+    rows = traversal.bench_mesh(short_name(point["name"]), v, f, [ray_set], args, source=source)
+    doc = {"machine": traversal.machine_info("llvm"), "versions": traversal.versions(),
+           "command": f"layerbvh sweep --job bench: {point['name']}, {kind} rays", "runs": s["runs"], "results": rows}
+    from . import atomic
+    atomic.write_text(out / "bench.json", json.dumps(doc, indent=1))
+    head = bench_report.headline_rows(rows)[0]
+    return {"report": "bench.json", "triangles": int(len(f)), "rays": kind, "query": head["query"],
+            "ray_count": head["ray_count"], "embree_mrays_s": head["embree"], "per_ray_mrays_s": head["per_ray"],
+            "per_ray_h": head["per_ray_h"], "sorted_mrays_s": head["sorted"], "sorted_h": head["sorted_h"],
+            "sorted_vs_per_ray": head["sorted_vs_per_ray"], "sorted_vs_embree": head["sorted_vs_embree"],
+            "per_ray_vs_embree": head["per_ray_vs_embree"], "memory_vs_per_ray": head["memory_vs_per_ray"],
+            "auto_mrays_s": head["auto"], "auto_choice": head["auto_choice"],
+            "auto_vs_best_of_two": head["auto_vs_best_of_two"]}
+
+
+def run_third_party(point: dict, out: Path) -> dict:
+    """third_party.run_worker: the A/B record of one third-party scene (verdict, ray check, notes)."""
+    from types import SimpleNamespace
+
+    from .third_party import run_worker
+    return run_worker(SimpleNamespace(worker=point["scene"], **point["settings"]))
+
+
+RUNNERS = {"compare": run_compare, "converge": run_converge, "bench": run_bench, "third_party": run_third_party}
+
+
+def main(argv=None) -> int:
+    _die_with_parent()
+    point_file, out = argv or sys.argv[1:]
+    point, out = json.loads(Path(point_file).read_text()), Path(out)
+    t0 = time.perf_counter()
+    try:
+        res = {"status": "ok", "figures": RUNNERS[point["job"]](point, out)}
+    except PointError as e:
+        res = {"status": "error", "error": str(e)}
+    except Exception as e:  # noqa: BLE001  (anything else still becomes one line in the table)
+        from .adapter import UnsupportedShapeError
+        from .render import UserError
+        from .third_party import one_line
+        traceback.print_exc()
+        res = {"status": "error", "error": str(e) if isinstance(e, (UserError, UnsupportedShapeError))
+               else f"{type(e).__name__}: {one_line(e)}"}
+    res["point_s"] = time.perf_counter() - t0
+    res["peak_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # Linux reports KiB
+    from . import atomic
+    from .report import _json_safe  # the project's rule for report JSON: plain types, NaN/Inf as null
+    atomic.write_text(out / "result.json", json.dumps(_json_safe(res), allow_nan=False))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
