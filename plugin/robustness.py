@@ -9,6 +9,7 @@ in STABILITY.md.
 from __future__ import annotations
 
 import json
+import os
 import resource
 import signal
 import subprocess
@@ -159,15 +160,18 @@ def ctrl_c(tmp: Path) -> Outcome:
     # Progress on: the bar's first line on stderr says rendering has started.
     p = subprocess.Popen([sys.executable, "-m", "layerbvh_mitsuba.cli", "render", str(SCENES / "cbox.xml"),
                           "--spp", str(40 * 64), "--res", "48", "48", "--traversal", "per_ray", "-o", str(out)],
-                         stderr=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+                         stderr=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0)
     deadline = time.monotonic() + TIMEOUT_S
     seen = ""
+    # Unbuffered byte reads: communicate() below reads the raw pipe, so anything a buffered
+    # reader had pulled in beyond "spp" would be lost and two lines would seem to merge.
     while "spp" not in seen and time.monotonic() < deadline and p.poll() is None:
-        seen += p.stderr.read(1)
+        seen += os.read(p.stderr.fileno(), 1).decode(errors="replace")
     p.send_signal(signal.SIGINT)
     t0 = time.monotonic()
     try:
         _, err = p.communicate(timeout=TIMEOUT_S)
+        err = err.decode(errors="replace")
     except subprocess.TimeoutExpired:
         p.kill()
         return Outcome("ctrl_c", False, "still running after SIGINT")
