@@ -9,6 +9,7 @@ import drjit as dr
 from . import backend as be
 from .auto import AUTO, AutoPolicy
 from .inputs import DEFAULT_LEAF_SIZE, DEFAULT_TREELET_HEIGHT, RayBatch, check_mesh, check_param, ray_batch
+from .instances import Group, Instance, InstancedParts, check_instanced, check_instances, instanced_layout
 from .layout import LayerLayout, check_layout, load_builder_kernels, to_layer_layout
 from .sah import BinaryBVH, build_binned_sah, triangle_bounds
 from .state import MISS, Results
@@ -24,7 +25,10 @@ TRACE_MODES = MODES + (AUTO,)
 @dataclass
 class Hits:
     """Closest hits, in the caller's array kind. Miss: t = inf, prim = MISS.
-    p = (1-u-v)*p0 + u*p1 + v*p2 with p0, p1, p2 the vertices of faces[prim]."""
+    p = (1-u-v)*p0 + u*p1 + v*p2 with p0, p1, p2 the vertices of faces[prim].
+
+    An instanced BVH (build_instanced) also gives `instance`, the instance hit (MISS on a miss),
+    and `prim` indexes the faces of that instance's group; None for a BVH over one mesh."""
 
     t: object
     prim: object
@@ -32,6 +36,7 @@ class Hits:
     v: object
     stats: TraceStats
     work: dict | None = None  # with stats: per ray, state.WORK counts (inner_nodes, triangles, steps, ...)
+    instance: object = None
 
 
 @dataclass
@@ -50,10 +55,14 @@ class LayerBVH:
     `batch_rays` bounds how many rays one kernel pass holds (the work memory); `tail_rays`: when
     this few rays (or `tail_fraction` of a batch) are left in the layer modes, one per-ray kernel
     finishes them; `auto_policy`
-    decides mode="auto" (default: auto.AutoPolicy's rules for the backend)."""
+    decides mode="auto" (default: auto.AutoPolicy's rules for the backend).
+
+    Given `groups` and `instances` (layerbvh.Group, layerbvh.Instance) in place of vertices and
+    faces (None), it is a two-level BVH over instanced geometry (see build_instanced)."""
 
     def __init__(self, vertices, faces, treelet_height=DEFAULT_TREELET_HEIGHT, leaf_size=DEFAULT_LEAF_SIZE, backend=None, batch_rays=BATCH_RAYS,
-                 tail_rays=TAIL_RAYS, auto_policy: AutoPolicy | None = None, tail_fraction: float = TAIL_FRACTION):
+                 tail_rays=TAIL_RAYS, auto_policy: AutoPolicy | None = None, tail_fraction: float = TAIL_FRACTION,
+                 groups: list[Group] | None = None, instances: list[Instance] | None = None):
         treelet_height = check_param("treelet_height", treelet_height)
         self.batch_rays = check_param("batch_rays", batch_rays)
         self.tail_rays = check_param("tail_rays", tail_rays)
@@ -61,26 +70,49 @@ class LayerBVH:
             raise ValueError(f"tail_fraction must be in [0, 1], got {tail_fraction}")
         self.tail_fraction = float(tail_fraction)
         leaf_size = check_param("leaf_size", leaf_size)
-        v, f = check_mesh(vertices, faces)
-        self.vertices, self.faces = v, f
         self.backend = backend or be.default_backend()
         self.m = be.module(self.backend)
         self.auto = auto_policy or AutoPolicy(self.backend)
-        kernel_load_s = load_builder_kernels() if len(f) else 0.0
-        t0 = time.perf_counter()
-        self.binary: BinaryBVH | None = build_binned_sah(*triangle_bounds(v, f), leaf_size) if len(f) else None
-        t1 = time.perf_counter()
-        self.layout: LayerLayout | None = to_layer_layout(self.binary, v, f, treelet_height) if len(f) else None
-        t2 = time.perf_counter()
+        self.groups: list[Group] | None = None
+        self.instances: list[Instance] | None = None
+        self.parts: InstancedParts | None = None
+        self.binary: BinaryBVH | None = None
+        if instances is None and groups is None:
+            v, f = check_mesh(vertices, faces)
+            self.vertices, self.faces = v, f
+            kernel_load_s = load_builder_kernels() if len(f) else 0.0
+            t0 = time.perf_counter()
+            self.binary = build_binned_sah(*triangle_bounds(v, f), leaf_size) if len(f) else None
+            t1 = time.perf_counter()
+            self.layout: LayerLayout | None = to_layer_layout(self.binary, v, f, treelet_height) if len(f) else None
+            t2 = time.perf_counter()
+            unique = placed = len(f)
+        else:
+            if vertices is not None or faces is not None or groups is None or instances is None:
+                raise ValueError("pass either vertices and faces (one mesh) or groups and instances (instanced geometry)")
+            self.vertices = self.faces = None
+            self.groups, self.instances = check_instances(groups, instances)
+            unique = sum(len(g.faces) for g in self.groups)
+            placed = sum(len(self.groups[i.group].faces) for i in self.instances)
+            kernel_load_s = load_builder_kernels() if unique else 0.0
+            t0 = time.perf_counter()
+            self.layout, self.parts = instanced_layout(self.groups, self.instances, treelet_height, leaf_size)
+            t1 = t2 = time.perf_counter()  # builds and lays out group by group: all of it is build time
         lay = self.layout
         self.device = None if lay is None else lay.to_device(self.m)
         self.stats = BVHStats(
-            triangles=len(f), nodes=lay.node_count if lay else 0, leaves=lay.leaf_count if lay else 0,
+            triangles=unique, nodes=lay.node_count if lay else 0, leaves=lay.leaf_count if lay else 0,
             treelets=lay.treelet_count if lay else 0, depth=lay.depth if lay else 0,
             treelet_height=treelet_height, leaf_size=leaf_size,
             treelet_node_counts=lay.treelet_node_counts.tolist() if lay else [],
             bytes=lay.array_bytes() if lay else {}, build_s=t1 - t0, layout_s=t2 - t1,
-            kernel_load_s=kernel_load_s)
+            kernel_load_s=kernel_load_s, groups=len(self.groups) if self.groups is not None else 0,
+            instances=len(self.instances) if self.instances is not None else 0, placed_triangles=placed)
+
+    @property
+    def instanced(self) -> bool:
+        """Whether this is a two-level BVH over instances (build_instanced)."""
+        return self.instances is not None
 
     @property
     def auto_choices(self) -> dict:
@@ -89,7 +121,9 @@ class LayerBVH:
 
     def check(self) -> None:
         """Raise AssertionError if a layout invariant is broken (see layout.check_layout)."""
-        if self.layout is not None:
+        if self.instanced:
+            check_instanced(self.parts, self.groups, self.instances)
+        elif self.layout is not None:
             check_layout(self.layout, len(self.faces))
 
     # -- tracing ---------------------------------------------------------------------------------
@@ -111,7 +145,7 @@ class LayerBVH:
             chosen = mode = "per_ray" if self.device is None else self.auto.decide(
                 timed_trace, batch, self.batch_rays, any_hit, hint, self.stats.treelets)
         if self.device is None or n == 0:
-            res, st = Results(self.m, n), TraceStats(mode=mode, rays=n)
+            res, st = Results(self.m, n, self.instanced), TraceStats(mode=mode, rays=n)
         elif n <= self.batch_rays:
             res, st = self._trace_batch(batch, mode, any_hit, count_work)
         else:
@@ -127,7 +161,7 @@ class LayerBVH:
         """Trace `batch_rays` rays at a time: the work arrays (entry stacks, queues, ray state
         copies) scale with the batch, not with the ray count, so peak memory is bounded."""
         m, n = self.m, batch.n
-        res, st = Results(m, n), TraceStats(mode=mode, rays=n, batches=0)
+        res, st = Results(m, n, self.instanced), TraceStats(mode=mode, rays=n, batches=0)
         for start in range(0, n, self.batch_rays):
             idx = dr.arange(m.UInt32, start, min(n, start + self.batch_rays))
             part, part_st = self._trace_batch(batch.take(idx), mode, any_hit, count_work)
@@ -147,11 +181,13 @@ class LayerBVH:
         batch, res, st = self._run(origins, directions, tmax, active, mode, False, stats, hint)
         back = batch.to_caller
         work = {k: back(w) for k, w in res.work.items()} if stats else None
+        inst = None if res.inst is None else back(res.inst)
         if st.rays == 0:  # empty arrays as they are (Dr.Jit cannot compare them with a literal)
-            return Hits(t=back(res.t), prim=back(res.prim), u=back(res.u), v=back(res.v), stats=st, work=work)
+            return Hits(t=back(res.t), prim=back(res.prim), u=back(res.u), v=back(res.v), stats=st, work=work,
+                        instance=inst)
         hit = res.prim != MISS
         t = dr.select(hit, res.t, dr.inf)  # a ray that finished without a hit carries its tmax
-        return Hits(t=back(t), prim=back(res.prim), u=back(res.u), v=back(res.v), stats=st, work=work)
+        return Hits(t=back(t), prim=back(res.prim), u=back(res.u), v=back(res.v), stats=st, work=work, instance=inst)
 
     def occluded(self, origins, directions, tmax=None, mode="layer_sorted", stats=True, hint="",
                  active=None) -> Occlusion:
@@ -173,10 +209,11 @@ class LayerBVH:
         n = max(dr.width(x) for x in (*o, *d, tmax, active))
         if self.device is None:
             return Hits(t=dr.full(m.Float, dr.inf, n), prim=dr.full(m.UInt32, MISS, n), u=dr.zeros(m.Float, n),
-                        v=dr.zeros(m.Float, n), stats=None)
+                        v=dr.zeros(m.Float, n), stats=None,
+                        instance=dr.full(m.UInt32, MISS, n) if self.instanced else None)
         out = trace_inline(m, self.device, o, d, tmax, active, any_hit)
         hit = out.prim != MISS
-        return Hits(t=dr.select(hit, out.t, dr.inf), prim=out.prim, u=out.u, v=out.v, stats=None)
+        return Hits(t=dr.select(hit, out.t, dr.inf), prim=out.prim, u=out.u, v=out.v, stats=None, instance=out.hit_inst)
 
 
 def build(vertices, faces, treelet_height: int = DEFAULT_TREELET_HEIGHT, leaf_size: int = DEFAULT_LEAF_SIZE,
@@ -187,3 +224,18 @@ def build(vertices, faces, treelet_height: int = DEFAULT_TREELET_HEIGHT, leaf_si
     `batch_rays` bounds how many rays one trace call processes at once (peak memory)."""
     return LayerBVH(vertices, faces, treelet_height=treelet_height, leaf_size=leaf_size, backend=backend,
                     batch_rays=batch_rays, tail_rays=tail_rays, auto_policy=auto_policy, tail_fraction=tail_fraction)
+
+
+def build_instanced(groups: list[Group], instances: list[Instance], treelet_height: int = DEFAULT_TREELET_HEIGHT,
+                    leaf_size: int = DEFAULT_LEAF_SIZE, backend: str | None = None, batch_rays: int = BATCH_RAYS,
+                    tail_rays: int = TAIL_RAYS, auto_policy: AutoPolicy | None = None,
+                    tail_fraction: float = TAIL_FRACTION) -> LayerBVH:
+    """Build a two-level Layer BVH: each group's mesh (layerbvh.Group) gets its own BVH, stored
+    once however many instances (layerbvh.Instance: group index, object -> world affine map)
+    place it, under a top-level BVH over the instances' world boxes (layerbvh.instances).
+    Memory grows with the unique triangles plus 64 bytes and about two nodes per instance. Hits
+    report the instance and the primitive inside its group; ties in t go to the lower instance
+    index, then the lower primitive id, in every mode."""
+    return LayerBVH(None, None, treelet_height=treelet_height, leaf_size=leaf_size, backend=backend,
+                    batch_rays=batch_rays, tail_rays=tail_rays, auto_policy=auto_policy, tail_fraction=tail_fraction,
+                    groups=groups, instances=instances)

@@ -1,9 +1,12 @@
-"""Ray set-up, the conservative two-child slab test and the watertight ray/triangle test (Dr.Jit)."""
+"""Ray set-up (world and instance object space), the conservative two-child slab test and the watertight ray/triangle test (Dr.Jit)."""
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import drjit as dr
 
-from .layout import NODE_BOX_HI, NODE_BOX_LO, NODE_FLOATS, NODE_LINK, TRI_FACE, TRI_FLOATS, TRI_NORMAL, TRI_VERTEX
+from .layout import (INST_FLOATS, INST_ROOT, INST_TO_OBJECT, NODE_BOX_HI, NODE_BOX_LO, NODE_FLOATS, NODE_LINK, TRI_FACE,
+                     TRI_FLOATS, TRI_NORMAL, TRI_VERTEX)
 
 # Ize 2013: scaling a box's far distance by 1 + 2*gamma(3) makes the float slab test conservative.
 _GAMMA3 = 3 * 2.0 ** -24 / (1 - 3 * 2.0 ** -24)
@@ -15,29 +18,68 @@ MIN_RCP_INPUT = 1e-18
 EDGE_ERR = 16 * 2.0 ** -24
 
 
+@dataclass
 class Ray:
-    """Per-ray constants of one traversal: origin, reciprocal direction, Woop's shear."""
+    """Per-ray constants of one traversal: origin, reciprocal direction, Woop's shear (made by
+    `setup_ray`; a dataclass, so a kernel can switch a ray between world and object space
+    inside its loop)."""
 
-    def __init__(self, m, o, d):
-        self.o, self.d = o, d
-        inv = []
-        for c in d:
-            c_safe = dr.select(dr.abs(c) < MIN_RCP_INPUT, dr.copysign(MIN_RCP_INPUT, c), c)
-            inv.append(dr.rcp(c_safe))
-        self.inv = inv
-        # Woop, Benthin, Wald 2013: kz is the dominant axis; kx, ky are swapped when d[kz] < 0
-        # to keep the winding (and so the sign of U, V, W) consistent.
-        ax, ay, az = dr.abs(d[0]), dr.abs(d[1]), dr.abs(d[2])
-        kz = dr.select((ax >= ay) & (ax >= az), m.UInt32(0), dr.select(ay >= az, m.UInt32(1), m.UInt32(2)))
-        kx = dr.select(kz == 2, m.UInt32(0), kz + 1)
-        ky = dr.select(kx == 2, m.UInt32(0), kx + 1)
-        dz = pick(d, kz)
-        flip = dz < 0
-        kx, ky = dr.select(flip, ky, kx), dr.select(flip, kx, ky)
-        self.kx, self.ky, self.kz = kx, ky, kz
-        self.sz = dr.rcp(dz)
-        self.sx = pick(d, kx) * self.sz
-        self.sy = pick(d, ky) * self.sz
+    o: list
+    d: list
+    inv: list
+    kx: object
+    ky: object
+    kz: object
+    sx: object
+    sy: object
+    sz: object
+
+
+def setup_ray(m, o, d) -> Ray:
+    """The Ray of origin o and direction d (three Floats each)."""
+    inv = []
+    for c in d:
+        c_safe = dr.select(dr.abs(c) < MIN_RCP_INPUT, dr.copysign(MIN_RCP_INPUT, c), c)
+        inv.append(dr.rcp(c_safe))
+    # Woop, Benthin, Wald 2013: kz is the dominant axis; kx, ky are swapped when d[kz] < 0
+    # to keep the winding (and so the sign of U, V, W) consistent.
+    ax, ay, az = dr.abs(d[0]), dr.abs(d[1]), dr.abs(d[2])
+    kz = dr.select((ax >= ay) & (ax >= az), m.UInt32(0), dr.select(ay >= az, m.UInt32(1), m.UInt32(2)))
+    kx = dr.select(kz == 2, m.UInt32(0), kz + 1)
+    ky = dr.select(kx == 2, m.UInt32(0), kx + 1)
+    dz = pick(d, kz)
+    flip = dz < 0
+    kx, ky = dr.select(flip, ky, kx), dr.select(flip, kx, ky)
+    sz = dr.rcp(dz)
+    return Ray(o=list(o), d=list(d), inv=inv, kx=kx, ky=ky, kz=kz, sx=pick(d, kx) * sz, sy=pick(d, ky) * sz, sz=sz)
+
+
+@dataclass
+class ObjectRay:
+    """A world ray mapped into the object space of an instance (`to_object_space`), and the
+    link to the root of that instance's group."""
+
+    o: list
+    d: list
+    root: object
+
+
+def to_object_space(m, instances, k, o, d, active) -> ObjectRay:
+    """World ray (o, d) in the object space of instance `k` (its INST_TO_OBJECT record).
+
+    The direction is mapped without renormalising, so a point at distance t along the object
+    ray is the image of the point at t along the world ray: hit distances need no mapping back
+    (up to the float32 rounding of the mapped ray). Fused multiply-adds in one fixed order give
+    the same bits wherever a kernel maps the ray (on entering an instance, or at the start of a
+    wavefront step), so every mode sees the same object ray."""
+    rec = dr.gather(m.ArrayXf, instances, k, active, shape=(INST_FLOATS, dr.width(k)))
+
+    def row(r, x, w):
+        at = INST_TO_OBJECT + 4 * r
+        return dr.fma(rec[at], x[0], dr.fma(rec[at + 1], x[1], dr.fma(rec[at + 2], x[2], w)))
+    return ObjectRay(o=[row(r, o, rec[INST_TO_OBJECT + 4 * r + 3]) for r in range(3)],
+                     d=[row(r, d, m.Float(0)) for r in range(3)],
+                     root=dr.reinterpret_array(m.UInt32, rec[INST_ROOT]))
 
 
 def pick(v, k):

@@ -22,6 +22,22 @@ MAX_TRIANGLES = 1 << LEAF_COUNT_SHIFT  # 67,108,864: what a leaf link can addres
 # MISS of a result (state.MISS), only equal to it in bits.
 POP = 0xFFFFFFFF
 
+# Instanced layouts (layerbvh.instances): leaf links whose count field is INSTANCE_COUNT (no
+# triangle leaf has it: leaf_size <= 16) are top-level leaves, one instance each, payload = the
+# instance's index. LEAVE, the marker a ray pushes under the entries of the instance it enters,
+# sends it back to world space when popped. POP carries the same tag, so by value:
+# triangle leaves < INSTANCE_TAG <= instance links < LEAVE < POP.
+INSTANCE_COUNT = 31
+INSTANCE_TAG = np.uint32(LEAF_BIT | (INSTANCE_COUNT << LEAF_COUNT_SHIFT))
+LEAVE = 0xFFFFFFFE
+MAX_INSTANCES = int(LEAVE & LEAF_FIRST_MASK)  # instance indices 0 .. MAX_INSTANCES - 1
+
+# Instance record, float32 slots (uint32 bits where noted), one per instance.
+INST_TO_OBJECT = 0      # 12 floats: world -> object affine map, row-major 3x4 (x' = M[:, :3] x + M[:, 3])
+INST_ROOT = 12          # uint32: exit link into the root treelet of the instance's group
+INST_GROUP = 13         # uint32: the instance's group (for tools and checks)
+INST_FLOATS = 16        # slots 14, 15 unused; total: 64 bytes, one cache line
+
 # Inner-node record, float32 slots (uint32 bits where noted). Index [side] = left (0), right (1).
 NODE_BOX_LO = (0, 6)    # 3 floats: child box minimum (x, y, z)
 NODE_BOX_HI = (3, 9)    # 3 floats: child box maximum
@@ -60,6 +76,11 @@ def leaf_range(link):
     return link & LEAF_FIRST_MASK, (link & ~LEAF_BIT) >> LEAF_COUNT_SHIFT
 
 
+def instance_link(index):
+    """The top-level leaf link of instance `index`; numpy or Dr.Jit."""
+    return INSTANCE_TAG | index
+
+
 @dataclass
 class LayerLayout:
     """The arrays the traversal kernels read, all flat and contiguous.
@@ -76,6 +97,8 @@ class LayerLayout:
     leaf_treelet    uint32 (L): treelet of each leaf's parent
     depth           number of inner-node levels (the longest root-to-leaf path has depth inner nodes)
     height          treelet height H the layout was cut with
+    instances       float32 (I*16) or None: per instance one 64-byte record (fields INST_*), in an
+                    instanced layout (layerbvh.instances), whose first treelets are the top level
     """
 
     nodes: np.ndarray
@@ -86,6 +109,7 @@ class LayerLayout:
     leaf_treelet: np.ndarray
     depth: int
     height: int
+    instances: np.ndarray | None = None
 
     @property
     def node_count(self) -> int:
@@ -114,11 +138,13 @@ class LayerLayout:
         return DeviceLayout(
             nodes=m.Float(_aligned(self.nodes)), tris=m.Float(_aligned(self.tris)),
             treelet_first=m.UInt32(self.treelet_first), node_treelet=m.UInt32(self.node_treelet),
-            depth=self.depth, height=self.height, treelet_count=self.treelet_count)
+            depth=self.depth, height=self.height, treelet_count=self.treelet_count,
+            instances=None if self.instances is None else m.Float(_aligned(self.instances)))
 
     def array_bytes(self) -> dict:
         """Bytes of each array the traversal keeps on the device (see DeviceLayout)."""
-        return {name: int(getattr(self, name).nbytes) for name in ("nodes", "tris", "treelet_first", "node_treelet")}
+        names = ("nodes", "tris", "treelet_first", "node_treelet") + (("instances",) if self.instances is not None else ())
+        return {name: int(getattr(self, name).nbytes) for name in names}
 
 
 @dataclass
@@ -133,6 +159,7 @@ class DeviceLayout:
     depth: int
     height: int
     treelet_count: int
+    instances: object = None  # instance records (INST_*), None for a layout without instances
 
 
 def _wrap_leaf_root(b: BinaryBVH) -> BinaryBVH:
@@ -145,8 +172,13 @@ def _wrap_leaf_root(b: BinaryBVH) -> BinaryBVH:
                      count=np.array([n, n, 0]), depth=np.array([0, 1, 1]), perm=b.perm)
 
 
-def to_layer_layout(b: BinaryBVH, vertices: np.ndarray, faces: np.ndarray, height: int) -> LayerLayout:
-    """Cut `b` into treelets of at most `height` levels and lay it out for traversal."""
+def to_layer_layout(b: BinaryBVH, vertices: np.ndarray | None, faces: np.ndarray | None, height: int) -> LayerLayout:
+    """Cut `b` into treelets of at most `height` levels and lay it out for traversal.
+
+    With vertices and faces None, `b` is a top level over instances (built with leaf size 1):
+    each leaf's link is the instance link of its one primitive (an empty leaf keeps an empty
+    triangle range) and there are no triangle records."""
+    over_instances = vertices is None
     if b.left[0] < 0:
         b = _wrap_leaf_root(b)
     m = len(b.left)
@@ -185,8 +217,14 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray, faces: np.ndarray, heigh
     leaf_first = np.zeros(m, np.int64)
     leaf_first[leaf_order] = first
 
+    def leaf_of(child):
+        if over_instances:
+            one = b.perm[np.minimum(b.start[child], max(len(b.perm) - 1, 0))].astype(np.uint32)
+            return np.where(b.count[child] == 1, instance_link(one), leaf_link(np.uint32(0), np.uint32(0)))
+        return leaf_link(leaf_first[child].astype(np.uint32), b.count[child].astype(np.uint32))
+
     def link(child, par):
-        out = np.where(leaf[child], leaf_link(leaf_first[child].astype(np.uint32), b.count[child].astype(np.uint32)),
+        out = np.where(leaf[child], leaf_of(child),
                        np.where(tre[child] != tre[par], EXIT_BIT | tre[child].astype(np.uint32),
                                 new_idx[child].astype(np.uint32)))
         return out.astype(np.uint32)
@@ -200,13 +238,14 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray, faces: np.ndarray, heigh
     rec[:, NODE_DEPTH] = b.depth[order]
 
     tri_ids = b.perm[_ranges(b.start[leaf_order], counts)]
-    tri = np.zeros((len(tri_ids), TRI_FLOATS), np.float32)
-    _triangle_records(vertices, faces, tri_ids, tri, tri.view(np.uint32), tri.view(np.float64))
+    tri = np.zeros((0 if over_instances else len(tri_ids), TRI_FLOATS), np.float32)
+    if not over_instances:
+        _triangle_records(vertices, faces, tri_ids, tri, tri.view(np.uint32), tri.view(np.float64))
 
     tre_first = np.searchsorted(tre[order], np.arange(n_treelets + 1)).astype(np.uint32)
     return LayerLayout(
         nodes=rec.reshape(-1),
-        leaves=_leaf_records(first, counts),
+        leaves=_instance_leaf_records(b, leaf_order) if over_instances else _leaf_records(first, counts),
         tris=tri.reshape(-1),
         treelet_first=tre_first,
         node_treelet=tre[order].astype(np.uint32),
@@ -242,13 +281,26 @@ def _leaf_records(first: np.ndarray, counts: np.ndarray) -> np.ndarray:
     return rec.reshape(-1)
 
 
+def _instance_leaf_records(b: BinaryBVH, leaf_order: np.ndarray) -> np.ndarray:
+    """Leaf records of a top level over instances: (instance, INSTANCE_COUNT) for a leaf holding
+    one, (0, 0) for an empty one, so that leaf_range of each leaf link is its record."""
+    one = b.count[leaf_order] == 1
+    rec = np.zeros((len(leaf_order), LEAF_UINTS), np.uint32)
+    rec[one, LEAF_FIRST] = b.perm[b.start[leaf_order][one]]
+    rec[one, LEAF_COUNT] = INSTANCE_COUNT
+    return rec.reshape(-1)
+
+
 def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
     offs = np.cumsum(counts) - counts
     return np.arange(int(counts.sum())) - np.repeat(offs - starts, counts)
 
 
-def check_layout(lay: LayerLayout, n_faces: int) -> None:
-    """Raise AssertionError naming the first broken invariant of a Layer BVH layout."""
+def check_layout(lay: LayerLayout, n_faces: int, instance_ids: np.ndarray | None = None) -> None:
+    """Raise AssertionError naming the first broken invariant of a Layer BVH layout.
+
+    With `instance_ids`, `lay` is a top level over these instances (to_layer_layout with no
+    triangles): each must sit in exactly one leaf, in place of the triangle checks."""
     n, nl, nt, h = lay.node_count, lay.leaf_count, lay.treelet_count, lay.height
     rec = lay.nodes.reshape(-1, NODE_FLOATS)
     links = lay.links()
@@ -294,18 +346,26 @@ def check_layout(lay: LayerLayout, n_faces: int) -> None:
     root_depth = depth[tf[:-1]]
     assert np.all(depth - root_depth[lay.node_treelet] < h), "a treelet is taller than its height"
     assert np.all(np.diff(depth[tf[:-1]]) >= 0) or nt == 1, "treelets are not in breadth-first order"
-    # Every triangle in exactly one leaf, leaves contiguous in triangle order.
-    assert first.tolist() == (np.cumsum(count) - count).tolist(), "leaf triangle ranges are not contiguous"
-    assert count.sum() == n_faces, "leaves do not cover every triangle exactly once"
-    ids = lay.tris.reshape(-1, TRI_FLOATS)[:, TRI_FACE].view(np.uint32)
-    assert np.array_equal(np.sort(ids), np.arange(n_faces, dtype=np.uint32)), "triangle ids are not a permutation"
-    # Child boxes bound what is below them.
+    if instance_ids is not None:
+        held = count == INSTANCE_COUNT
+        assert np.all(held | (count == 0)), "a top-level leaf holds something else than one instance"
+        assert np.array_equal(np.sort(first[held]), np.sort(instance_ids)), \
+            "top-level leaves do not hold every instance exactly once"
+        assert len(lay.tris) == 0, "a top level over instances has triangle records"
+    else:
+        # Every triangle in exactly one leaf, leaves contiguous in triangle order.
+        assert first.tolist() == (np.cumsum(count) - count).tolist(), "leaf triangle ranges are not contiguous"
+        assert count.sum() == n_faces, "leaves do not cover every triangle exactly once"
+        ids = lay.tris.reshape(-1, TRI_FLOATS)[:, TRI_FACE].view(np.uint32)
+        assert np.array_equal(np.sort(ids), np.arange(n_faces, dtype=np.uint32)), "triangle ids are not a permutation"
+    # Child boxes bound what is below them (an instance's box: see instances.check_instanced).
     tri = lay.tris.reshape(-1, TRI_FLOATS)[:, TRI_VERTEX[0]:TRI_VERTEX[2] + 3].reshape(-1, 3, 3)
     box = (lambda r, at: r[:, at:at + 3])
     for side in (0, 1):
         box_lo, box_hi = box(rec, NODE_BOX_LO[side]), box(rec, NODE_BOX_HI[side])
         lk = is_leaf[:, side]
-        for i in np.nonzero(lk)[0][:: max(1, lk.sum() // 2000)]:  # a sample keeps the check fast
+        tri_leaves = np.nonzero(lk)[0] if instance_ids is None else np.zeros(0, np.int64)
+        for i in tri_leaves[:: max(1, len(tri_leaves) // 2000)]:  # a sample keeps the check fast
             s, c = first[payload[i, side]], count[payload[i, side]]
             if c:
                 t = tri[s:s + c]

@@ -5,7 +5,8 @@ from dataclasses import dataclass
 
 import drjit as dr
 
-# The one "no hit" value: the primitive of a ray that hit nothing (uint32).
+# The one "no hit" value: the primitive of a ray that hit nothing (uint32), and the instance of
+# a ray that hit nothing or is not inside an instance.
 MISS = 0xFFFFFFFF
 # Work counted per ray when statistics are asked for: RayState field -> Results/Hits name.
 WORK = {"n_inner": "inner_nodes", "n_leaf": "leaves", "n_tri": "triangles", "n_iter": "iterations",
@@ -68,7 +69,9 @@ class RayState:
     (a node, leaf or exit link, or layout.POP), `sp` the depth of its entry stack in global
     memory, `slot` its index in the caller's ray batch (and so which entry stack and ray record
     it owns), `treelet` the treelet it traverses in the coming step. The work counters are None
-    unless statistics were asked for: permuting them every step costs as much as any other field."""
+    unless statistics were asked for: permuting them every step costs as much as any other field.
+    In an instanced layout `inst` is the instance the ray is inside (MISS: in world space) and
+    `hit_inst` the instance of the closest hit so far; both None otherwise."""
 
     t: object
     u: object
@@ -83,9 +86,11 @@ class RayState:
     n_tri: object = None
     n_iter: object = None
     n_steps: object = None  # kernel calls (wavefront steps, or the per-ray kernel) the ray took part in
+    inst: object = None
+    hit_inst: object = None
 
     @classmethod
-    def start(cls, m, tmax, count_work: bool) -> "RayState":
+    def start(cls, m, tmax, count_work: bool, instanced: bool = False) -> "RayState":
         """Every ray at the root, no hit yet, slot = its index."""
         n = dr.width(tmax)
         zero = dr.zeros(m.UInt32, n)
@@ -94,6 +99,8 @@ class RayState:
         if count_work:
             for field in WORK:
                 setattr(s, field, zero)
+        if instanced:
+            s.inst, s.hit_inst = dr.full(m.UInt32, MISS, n), dr.full(m.UInt32, MISS, n)
         return s
 
     def fields(self) -> dict:
@@ -106,17 +113,19 @@ class RayState:
 
 class Results:
     """Per-ray outputs, written by ray slot as rays finish: the closest hit (prim = MISS: none;
-    for any-hit queries, prim != MISS means occluded) and the work counters."""
+    for any-hit queries, prim != MISS means occluded), its instance (instanced layouts only,
+    else None) and the work counters."""
 
-    def __init__(self, m, n):
+    def __init__(self, m, n, instanced: bool = False):
         self.t = dr.full(m.Float, dr.inf, n)
         self.u = dr.zeros(m.Float, n)
         self.v = dr.zeros(m.Float, n)
         self.prim = dr.full(m.UInt32, MISS, n)
+        self.inst = dr.full(m.UInt32, MISS, n) if instanced else None
         self.work = {name: dr.zeros(m.UInt32, n) for name in WORK.values()}  # per ray (statistics)
 
     def arrays(self) -> tuple:
-        return (self.t, self.u, self.v, self.prim, *self.work.values())
+        return (self.t, self.u, self.v, self.prim, *self.work.values()) + ((self.inst,) if self.inst is not None else ())
 
     def place(self, other: "Results", idx) -> None:
         """Copy the results of a sub-batch to the rays `idx`."""
@@ -124,8 +133,9 @@ class Results:
             dr.scatter(dst, src, idx)
 
     def write(self, s: RayState, mask) -> None:
-        for dst, src in ((self.t, s.t), (self.u, s.u), (self.v, s.v), (self.prim, s.prim)):
-            dr.scatter(dst, src, s.slot, mask)
+        for dst, src in ((self.t, s.t), (self.u, s.u), (self.v, s.v), (self.prim, s.prim), (self.inst, s.hit_inst)):
+            if dst is not None:
+                dr.scatter(dst, src, s.slot, mask)
         if s.n_iter is not None:
             for field, name in WORK.items():
                 dr.scatter(self.work[name], getattr(s, field), s.slot, mask)

@@ -90,6 +90,9 @@ class BVHStats:
     build_s: float
     layout_s: float
     kernel_load_s: float = 0.0  # first build in a process: compiling/loading the builder's kernels
+    groups: int = 0  # instanced BVH: groups of unique geometry (`triangles` counts theirs, each once)
+    instances: int = 0  # instanced BVH: instances placing them
+    placed_triangles: int = 0  # triangles in the scene as placed (what a flattened copy would hold)
 
     @property
     def total_bytes(self) -> int:

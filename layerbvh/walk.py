@@ -3,9 +3,9 @@ from __future__ import annotations
 
 import drjit as dr
 
-from .geometry import FAR_SCALE, Ray, hit_children, hit_triangle
-from .layout import EXIT_BIT, LEAF_BIT, PAYLOAD_MASK, POP, DeviceLayout, leaf_range
-from .state import RayState
+from .geometry import FAR_SCALE, hit_children, hit_triangle, setup_ray, to_object_space
+from .layout import EXIT_BIT, INSTANCE_TAG, LEAF_BIT, LEAF_FIRST_MASK, LEAVE, PAYLOAD_MASK, POP, DeviceLayout, leaf_range
+from .state import MISS, RayState
 
 
 @dr.syntax
@@ -34,8 +34,22 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
     pushed in this step belong to the step's treelet unless they are exits (which name theirs);
     a popped global entry of another treelet ends the step, except a leaf, which is simply
     tested here (leaf work reads triangles, not the treelet's nodes).
+
+    Instanced layouts (lay.instances set; the code below is compiled only for them): reaching
+    an instance link (a top-level leaf), a ray pushes the LEAVE marker (entry distance 0, never
+    culled), maps itself into the instance's object space and goes on at the root of its group;
+    every entry pushed from there lies above the marker, so popping the marker (back to world
+    space) happens exactly when the instance is done. Entering an instance ends a bounded step:
+    the group's root treelet is always another treelet (its key for the sort). Hits are ordered
+    by (t, instance, primitive): ties in t go to the lower instance index, then the lower
+    primitive id, in every mode.
     """
-    ray = Ray(m, *rays.load(s.slot))
+    world_o, world_d = rays.load(s.slot)
+    instanced = lay.instances is not None
+    ray = _start_ray(m, lay, s, world_o, world_d)
+    # Without instances both stay MISS (unused, but every name the loop touches must exist).
+    in_inst = m.UInt32(s.inst) if instanced else m.UInt32(MISS)
+    hit_inst = m.UInt32(s.hit_inst) if instanced else m.UInt32(MISS)
     loc_link = dr.alloc_local(m.UInt32, cap + 1, m.UInt32(0))
     loc_t = dr.alloc_local(m.Float, cap + 1, m.Float(0))
     nl = m.UInt32(0)
@@ -59,7 +73,9 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
         # -- a triangle of the current leaf --
         if tri_cur < tri_end:
             hit, t, u, v, prim = hit_triangle(m, lay.tris, tri_cur, ray, active)
-            closer = hit & ((t < t_best) | ((t == t_best) & (prim < prim_best)))
+            closer = hit & ((t < t_best) | ((t == t_best) & _first_by_id(prim, prim_best, in_inst, hit_inst, instanced)))
+            if instanced:
+                hit_inst = dr.select(closer, in_inst, hit_inst)
             t_best = dr.select(closer, t, t_best)
             u_best = dr.select(closer, u, u_best)
             v_best = dr.select(closer, v, v_best)
@@ -91,6 +107,14 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
         # An entry farther than the closest hit found since it was pushed is culled (with the
         # slab test's rounding margin, as in hit_children: ties must stay reachable).
         link = dr.select(want, dr.select(active & (e_t <= t_best * FAR_SCALE), e_link, POP), link)
+        leave_inst = m.Bool(False)
+        if instanced:
+            # The LEAVE marker: the ray's instance is done; back to world space, next entry.
+            leave_inst = want & (link == LEAVE)
+            link = dr.select(leave_inst, POP, link)
+            if leave_inst:
+                in_inst = m.UInt32(MISS)
+                ray = setup_ray(m, world_o, world_d)
         if bounded:
             # Entries pushed in this step are of its treelet, exits excepted; global ones may be
             # of any treelet (a node's is looked up, an exit names its own).
@@ -103,10 +127,28 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
             next_treelet = dr.select(leave, tre, next_treelet)
             active &= ~leave
 
+        # -- an instance: into its object space, the LEAVE marker pushed below its entries --
+        entered = m.Bool(False)
+        if instanced:
+            entered = active & (tri_cur >= tri_end) & (link >= INSTANCE_TAG) & (link < LEAVE)
+            if entered:
+                in_inst = link & LEAF_FIRST_MASK
+                enter_obj = to_object_space(m, lay.instances, in_inst, world_o, world_d, entered)
+                ray = setup_ray(m, enter_obj.o, enter_obj.d)
+                link = enter_obj.root
+                if bounded:  # the group's root treelet is another treelet: this step ends here
+                    next_treelet = link & PAYLOAD_MASK
+                    active &= False
+
         # -- a node: both children; on with the nearer, push the farther --
         push = m.Bool(False)
         far_link, far_t = m.UInt32(0), m.Float(0)
-        if active & (tri_cur >= tri_end) & (link != POP) & ((link & LEAF_BIT) == 0):
+        at_node = active & (tri_cur >= tri_end) & (link != POP) & ((link & LEAF_BIT) == 0)
+        if instanced:  # the marker is this iteration's push
+            push = m.Bool(entered)
+            far_link = dr.select(entered, m.UInt32(LEAVE), far_link)
+            at_node &= ~entered
+        if at_node:
             payload = link & PAYLOAD_MASK
             is_exit = (link & EXIT_BIT) != 0
             node = m.UInt32(payload)
@@ -130,8 +172,12 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
         loc_t[slot] = far_t
         nl = dr.select(push, nl + 1, nl)
 
-        # -- a leaf: its triangles from the next iteration on --
-        if active & (link != POP) & ((link & LEAF_BIT) != 0):
+        # -- a leaf: its triangles from the next iteration on (an instance link waits for the
+        # next iteration, which enters it) --
+        at_leaf = active & (link != POP) & ((link & LEAF_BIT) != 0)
+        if instanced:
+            at_leaf &= link < INSTANCE_TAG
+        if at_leaf:
             first, count = leaf_range(link)
             tri_cur, tri_end = m.UInt32(first), first + count
             link = m.UInt32(POP)
@@ -140,7 +186,28 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
 
     out = RayState(t=t_best, u=u_best, v=v_best, prim=prim_best, link=link, sp=sp, slot=s.slot,
                    treelet=next_treelet)
+    if instanced:
+        out.inst, out.hit_inst = in_inst, hit_inst
     if count_work:
         out.n_inner, out.n_leaf, out.n_tri, out.n_iter, out.n_steps = n_inner, n_leaf, n_tri, n_iter, n_steps
     local = [(m.UInt32(loc_link[k]), m.Float(loc_t[k])) for k in range(cap)]
     return out, done, nl, local
+
+
+def _start_ray(m, lay: DeviceLayout, s: RayState, world_o, world_d):
+    """Each ray where it starts: in the object space of the instance it is inside (s.inst, in an
+    instanced layout), else in world space."""
+    if lay.instances is None:
+        return setup_ray(m, world_o, world_d)
+    inside = s.inst != MISS
+    obj = to_object_space(m, lay.instances, s.inst, world_o, world_d, inside)
+    return setup_ray(m, [dr.select(inside, obj.o[c], world_o[c]) for c in range(3)],
+                     [dr.select(inside, obj.d[c], world_d[c]) for c in range(3)])
+
+
+def _first_by_id(prim, prim_best, inst, inst_best, instanced: bool):
+    """Of two hits at the same t, whether (inst, prim) comes first: the lower instance, then the
+    lower primitive (without instances: the lower primitive)."""
+    if instanced:
+        return (inst < inst_best) | ((inst == inst_best) & (prim < prim_best))
+    return prim < prim_best

@@ -31,12 +31,13 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, mode: str, any_hit: bool, tail_
     """Closest hit (or any hit) of every ray of `batch`; returns (Results, TraceStats)."""
     n = batch.n
     stats = TraceStats(mode=mode, rays=n)
-    res = Results(m, n)
+    instanced = lay.instances is not None
+    res = Results(m, n, instanced)
     # Invalid and inactive rays are misses and never enter a kernel.
     idx = dr.compress(batch.valid)
     if dr.width(idx) == 0:  # no valid ray: Dr.Jit kernels cannot run on empty arrays
         return res, stats
-    s = RayState.start(m, batch.tmax, count_work).take(idx)
+    s = RayState.start(m, batch.tmax, count_work, instanced).take(idx)
     rays = SlotRays(m, batch.o, batch.d) if mode == "per_ray" else RayRecords(m, batch.o, batch.d)
     t0 = _sync()
     if mode == "per_ray":
@@ -54,7 +55,9 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, mode: str, any_hit: bool, tail_
     if mode not in ("layer_sorted", "layer_unsorted"):
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     sort = mode == "layer_sorted"
-    cap_local = max(1, min(lay.height, lay.depth))
+    # A step pushes at most one entry per level of its treelet, plus, in an instanced layout,
+    # the LEAVE marker of the instance it enters (entering ends the step).
+    cap_local = max(1, min(lay.height, lay.depth)) + (1 if instanced else 0)
     cap_global = max(1, lay.depth)
     # Entries are only read below a ray's stack pointer, so the stacks need no zeroing.
     st_link = dr.empty(m.UInt32, n * cap_global)
@@ -122,6 +125,7 @@ def trace_inline(m, lay: DeviceLayout, o, d, tmax, active, any_hit: bool) -> Ray
     can run inside the caller's symbolic loop (a bounce loop compiled into one kernel). Rays
     where `active` is False keep prim = MISS. Returns the final state (t, u, v, prim)."""
     n = max(dr.width(x) for x in (*o, *d, tmax, active))
-    s = RayState.start(m, dr.zeros(m.Float, n) + m.Float(tmax), count_work=False)  # one tmax per lane
+    s = RayState.start(m, dr.zeros(m.Float, n) + m.Float(tmax), count_work=False,  # one tmax per lane
+                       instanced=lay.instances is not None)
     out, _, _, _ = walk(m, lay, DirectRays(o, d), s, None, max(lay.depth, 1), False, any_hit, False, active=active)
     return out

@@ -1,4 +1,4 @@
-"""Stock Mitsuba (Embree) ray queries over a bare triangle mesh: the ground truth the engine is checked against."""
+"""Stock Mitsuba (Embree) ray queries over a bare triangle mesh or instanced meshes: the ground truth the engine is checked against."""
 from __future__ import annotations
 
 import drjit as dr
@@ -13,18 +13,51 @@ from .render import use_variant
 def scene_from_mesh(vertices: np.ndarray, faces: np.ndarray, robust: bool = False):
     """A Mitsuba scene holding one mesh with exactly these triangles (face i = primitive i)."""
     use_variant()
+    props = {"type": "scene", "mesh": _mesh("mesh", vertices, faces)}
+    if robust:
+        props["embree_use_robust_intersections"] = True
+    return mi.load_dict(props)
+
+
+def _mesh(name: str, vertices: np.ndarray, faces: np.ndarray):
     v = np.ascontiguousarray(vertices, np.float32)
     f = np.ascontiguousarray(faces, np.uint32)
-    mesh = mi.Mesh("mesh", vertex_count=len(v), face_count=len(f),
-                   has_vertex_normals=False, has_vertex_texcoords=False)
+    mesh = mi.Mesh(name, vertex_count=len(v), face_count=len(f), has_vertex_normals=False, has_vertex_texcoords=False)
     params = mi.traverse(mesh)
     params["vertex_positions"] = mi.Float(v.reshape(-1))
     params["faces"] = mi.UInt32(f.reshape(-1))
     params.update()
-    props = {"type": "scene", "mesh": mesh}
-    if robust:
-        props["embree_use_robust_intersections"] = True
+    return mesh
+
+
+def scene_from_instances(groups, instances):
+    """A Mitsuba scene with one shapegroup per layerbvh.Group (one mesh each) and one instance
+    per layerbvh.Instance (id `inst_<index>`), for Embree's own two-level traversal."""
+    use_variant()
+    props = {"type": "scene"}
+    for g, grp in enumerate(groups):
+        props[f"group_{g}"] = {"type": "shapegroup", "mesh": _mesh(f"mesh_{g}", grp.vertices, grp.faces)}
+    for k, inst in enumerate(instances):
+        m = np.eye(4)
+        m[:3] = np.asarray(inst.to_world, np.float64)[:3]
+        props[f"inst_{k}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": f"group_{inst.group}"},
+                              "to_world": mi.ScalarTransform4f(m.tolist())}
     return mi.load_dict(props)
+
+
+def intersect_instanced(scene, o: np.ndarray, d: np.ndarray):
+    """Embree closest hits through instances as numpy: (t with inf for misses, instance index
+    (from the id `inst_<index>`), prim inside the group; MISS for misses)."""
+    pi = scene.ray_intersect_preliminary(rays(o, d))
+    valid = pi.is_valid()
+    inst = dr.full(mi.UInt32, MISS, dr.width(valid))
+    for shape in scene.shapes():
+        if shape.id().startswith("inst_"):
+            inst = dr.select(valid & (pi.instance == shape), int(shape.id()[5:]), inst)
+    t = dr.select(valid, pi.t, dr.inf)
+    prim = dr.select(valid, pi.prim_index, mi.UInt32(MISS))
+    dr.eval(t, inst, prim)
+    return t.numpy(), inst.numpy(), prim.numpy()
 
 
 def rays(o: np.ndarray, d: np.ndarray, tmax=None):

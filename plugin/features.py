@@ -21,7 +21,7 @@ class Features:
 
     emitter_sampling: Feature  # sample an emitter and trace a shadow ray per vertex
     emitter_hits: Feature      # look up emission where a ray hits an area or environment emitter
-    analytic_shapes: Feature   # intersect spheres, disks, cylinders with Mitsuba's per-shape test
+    analytic_shapes: Feature   # spheres, disks, cylinders, ellipsoids (also in instances): Mitsuba's per-shape test
     sort: Feature              # sort rays by treelet between wavefront steps
     statistics: Feature        # work counters in the traversal kernels
     traversal: str             # the integrator's traversal mode
@@ -58,8 +58,10 @@ def plan_features(scene, analytic_shapes: int, treelets: int, traversal: str, st
                                  "the scene has no emitter: no emitter sampling, no shadow rays", force),
         emitter_hits=_decide(len(hittable) > 0, f"{len(hittable)} area/environment emitter(s) can be hit",
                              "no area or environment emitter: nothing a ray hits emits", force),
-        analytic_shapes=_decide(analytic_shapes > 0, f"{analytic_shapes} sphere/disk/cylinder shape(s)",
-                                "no sphere, disk or cylinder: BVH hits only", force),
+        analytic_shapes=_decide(analytic_shapes > 0,
+                                f"{analytic_shapes} per-shape test(s) per ray (spheres, disks, cylinders, ellipsoids; "
+                                f"one per instance of one)",
+                                "no sphere, disk, cylinder or ellipsoid: BVH hits only", force),
         sort=_decide(sorted_mode and not one_treelet,
                      "rays sorted by treelet between wavefront steps" + (
                          " (auto: for the ray batches where layer_sorted timed faster)"

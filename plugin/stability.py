@@ -86,8 +86,8 @@ def scene_triangles(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """World-space triangles of a project XML scene (every mesh, as the integrator sees them)."""
     mi = _mi()
     from .adapter import collect_geometry
-    g = collect_geometry(mi.load_file(str(path), resx=8, resy=8))
-    return g.vertices.astype(np.float64), g.faces
+    v, f, _ = collect_geometry(mi.load_file(str(path), resx=8, resy=8)).world_triangles()
+    return v.astype(np.float64), f
 
 
 def bunny() -> tuple[np.ndarray, np.ndarray]:

@@ -132,8 +132,7 @@ def _recorded_rays(mi, point: dict, kind: str):
             "variant": s["variant"], "mitsuba": mi.__version__}
     path = cache_dir("rays") / f"{reference_key(Path(point['scene']), what)[:24]}.npz"
     if not path.is_file():
-        rec, geometry, meta, _ = record_scene(mi, point["scene"], s["res"], s["spp"], s["seed"], s["ray_count"])
-        rec.save(path, geometry.vertices, geometry.faces, meta)
+        record_scene(mi, point["scene"], s["res"], s["spp"], s["seed"], s["ray_count"]).save(path)
     v, f, rays, meta = record.load(path)
     if kind not in rays:
         raise PointError(f"the render traced no {kind} rays ({s['res'][0]}x{s['res'][1]}, {s['spp']} spp)")

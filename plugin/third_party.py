@@ -86,14 +86,18 @@ def _xml_text(path: Path, seen=None) -> str:
 
 
 def _shape_counts(scene) -> tuple[int, str]:
-    tris, other = 0, {}
+    tris, placed, other = 0, 0, {}
     for s in scene.shapes():
         if s.is_mesh():
             tris += int(s.face_count())
+        elif s.class_name() == "Instance":
+            other["instance"] = other.get("instance", 0) + 1
+            placed += int(s.effective_primitive_count())
         else:
             name = s.class_name().lower()
             other[name] = other.get(name, 0) + 1
-    return tris, ", ".join(f"{n} {k}" for k, n in sorted(other.items())) or "-"
+    shown = ", ".join(f"{n} {k}" for k, n in sorted(other.items())) or "-"
+    return tris, shown + (f" ({placed:,} primitives placed)" if placed else "")
 
 
 def _finite(img, np):
@@ -119,18 +123,39 @@ def ray_check(tracer, n: int, seed: int) -> dict | None:
     many rays get another triangle, and how many of those are ties (`embree.disagreements`):
     shared edges and (near-)coplanar overlapping triangles, where either answer is right (we take
     the one whose float t is smaller, then the lower primitive id)."""
+    import numpy as np
+
+    from layerbvh import MISS
+
     from . import embree
     from .bench import meshes
     g = tracer.geometry
     if n <= 0 or g.triangle_count == 0:
         return None
-    o, d = meshes.incoherent_rays(g.vertices, n, seed)
-    _, p_e = embree.intersect(embree.scene_from_mesh(g.vertices, g.faces), o, d)
+    # An instanced scene is compared on its placed triangles, flattened into world space for
+    # Embree; our hit (instance, prim) is that placement's first flat face + prim.
+    v, f, first = g.world_triangles()
+    o, d = meshes.incoherent_rays(v, n, seed)
+    _, p_e = embree.intersect(embree.scene_from_mesh(v, f), o, d)
     h = tracer.bvh.trace(o, d, mode="per_ray", stats=False)
-    dis = embree.disagreements(g.vertices, g.faces, o, d, h.prim, p_e)
+    prim = h.prim
+    if h.instance is not None:
+        hit = h.prim != MISS
+        prim = np.where(hit, first[np.where(hit, h.instance, 0)] + h.prim, MISS).astype(np.uint32)
+    dis = embree.disagreements(v, f, o, d, prim, p_e)
     tie = dis["tie_idx"]
+    shape_of = _flat_shapes(g)
     return {"rays": n, "other_prim": dis["ties"] + dis["other"] + dis["hit_miss"], "ties": dis["ties"],
-            "tie_other_shape": int((g.tri_shape[p_e[tie]] != g.tri_shape[h.prim[tie]]).sum())}
+            "tie_other_shape": int((shape_of[p_e[tie]] != shape_of[prim[tie]]).sum())}
+
+
+def _flat_shapes(g):
+    """Per flat face of SceneGeometry.world_triangles: (placement, shape) as one integer."""
+    import numpy as np
+    if not g.instanced:
+        return g.tri_shape.astype(np.int64)
+    return np.concatenate([k * (1 << 32) + g.groups[p.group].tri_shape.astype(np.int64)
+                           for k, p in enumerate(g.placements)])
 
 
 def run_worker(args) -> dict:

@@ -73,13 +73,13 @@ def test_bad_integrator_properties():
         mi.load_dict({"type": "layerbvh", "traversal": "fast"})
 
 
-def test_unsupported_shape_is_refused_by_name():
-    scene = mi.load_string("""<scene version="3.0.0">
-        <shape type="shapegroup" id="grp"><shape type="sphere"/></shape>
-        <shape type="instance" id="inst1"><ref id="grp"/></shape>
+def test_unsupported_shape_is_refused_by_name(tmp_path):
+    (tmp_path / "curve.txt").write_text("-1 0 0 0.1\n0 0.5 0 0.1\n1 0 0 0.1\n")
+    scene = mi.load_string(f"""<scene version="3.0.0">
+        <shape type="linearcurve" id="hair"><string name="filename" value="{tmp_path / 'curve.txt'}"/></shape>
         <shape type="rectangle" id="floor"/></scene>""")
     integ = mi.load_dict({"type": "layerbvh"})
-    with pytest.raises(UnsupportedShapeError, match=r"Instance 'inst1'.*instance"):
+    with pytest.raises(UnsupportedShapeError, match=r"LinearCurve 'hair'.*'linearcurve'.*not supported"):
         integ.tracer(scene)
 
 

@@ -4,14 +4,30 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 
 
-def record_scene(mi, scene_path, res, spp: int, seed: int, cap: int):
-    """Render the scene with the layerbvh integrator (per_ray) and keep the rays it traces:
-    (RayRecorder, SceneGeometry, meta for RayRecorder.save, render seconds). Raises UserError
-    when the scene cannot be loaded."""
+@dataclass
+class Recording:
+    """The rays one render traced, with the scene's triangles in world space (every placement of
+    an instanced shapegroup flattened: benchmarks on a recording trace a one-level BVH)."""
+
+    recorder: object  # record.RayRecorder
+    vertices: np.ndarray
+    faces: np.ndarray
+    meta: dict  # what RayRecorder.save stores beside the rays
+    render_s: float
+
+    def save(self, path) -> None:
+        self.recorder.save(path, self.vertices, self.faces, self.meta)
+
+
+def record_scene(mi, scene_path, res, spp: int, seed: int, cap: int) -> Recording:
+    """Render the scene with the layerbvh integrator (per_ray) and keep the rays it traces.
+    Raises UserError when the scene cannot be loaded."""
     from layerbvh_mitsuba import record
     from layerbvh_mitsuba.render import load_scene, path_props
     scene = load_scene(mi, str(scene_path), tuple(res))
@@ -20,13 +36,17 @@ def record_scene(mi, scene_path, res, spp: int, seed: int, cap: int):
     if tracer.geometry.analytic:
         print(f"record_rays: note: {len(tracer.geometry.analytic)} analytic shape(s) are not in the recorded "
               f"triangles; rays that hit them are benchmarked against the triangles only", file=sys.stderr)
+    if tracer.geometry.instanced:
+        print("record_rays: note: the scene has instances; the recording holds every placed triangle in world "
+              "space (flattened), so benchmarks on it trace a one-level BVH", file=sys.stderr)
     tracer.recorder = record.RayRecorder(cap)
     t0 = time.perf_counter()
     mi.render(scene, integrator=integ, spp=spp, seed=seed)
     secs = time.perf_counter() - t0
+    vertices, faces, _ = tracer.geometry.world_triangles()
     meta = {"scene": Path(scene_path).name, "resolution": list(res), "spp": spp, "seed": seed,
-            "triangles": tracer.geometry.triangle_count, "integrator": path_props(mi, scene)}
-    return tracer.recorder, tracer.geometry, meta, secs
+            "triangles": len(faces), "integrator": path_props(mi, scene)}
+    return Recording(tracer.recorder, vertices, faces, meta, secs)
 
 
 def main(argv=None) -> int:
@@ -43,13 +63,13 @@ def main(argv=None) -> int:
     from layerbvh_mitsuba import record
     from layerbvh_mitsuba.render import UserError
     try:
-        rec, geometry, meta, secs = record_scene(mi, args.scene, args.res, args.spp, args.seed, args.cap)
+        rec = record_scene(mi, args.scene, args.res, args.spp, args.seed, args.cap)
     except UserError as e:
         print(f"record_rays: error: {e}", file=sys.stderr)
         return 2
-    rec.save(args.out, geometry.vertices, geometry.faces, meta)
-    print(f"{args.out}: {geometry.triangle_count:,} triangles, render {secs:.1f} s; rays kept/traced: "
-          + ", ".join(f"{k} {rec.count[k]:,}/{rec.seen[k]:,}" for k in record.KINDS))
+    rec.save(args.out)
+    print(f"{args.out}: {len(rec.faces):,} triangles, render {rec.render_s:.1f} s; rays kept/traced: "
+          + ", ".join(f"{k} {rec.recorder.count[k]:,}/{rec.recorder.seen[k]:,}" for k in record.KINDS))
     return 0
 
 

@@ -1,0 +1,226 @@
+"""Instanced geometry: two-level traversal in every mode against each other, Embree's own instancing and a flattened copy; ties, memory, bad input."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import layerbvh
+from layerbvh import MISS, Group, Instance
+from layerbvh.instances import BOX_PAD
+from layerbvh_mitsuba import embree
+from layerbvh_mitsuba.bench import meshes
+
+N_RAYS = 30_000
+
+
+def _rotation(rng) -> np.ndarray:
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    w, x, y, z = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def _placements(n: int, groups: int, seed: int, spread: float) -> list[Instance]:
+    """`n` overlapping instances: random rotation, non-uniform scale (0.5-2) and translation."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n):
+        m = np.eye(4)
+        m[:3, :3] = _rotation(rng) @ np.diag(rng.uniform(0.5, 2.0, 3))
+        m[:3, 3] = rng.uniform(-spread, spread, 3)
+        out.append(Instance(k % groups, m))
+    return out
+
+
+def _flatten(groups, instances):
+    """World-space triangles of every instance (float64 map, rounded once) and the flat id of
+    (instance, prim): offset[instance] + prim."""
+    vs, fs, offset, nv, nf = [], [], [], 0, 0
+    for inst in instances:
+        g = groups[inst.group]
+        m = np.asarray(inst.to_world, np.float64)
+        vs.append(g.vertices.astype(np.float64) @ m[:3, :3].T + m[:3, 3])
+        fs.append(np.asarray(g.faces) + nv)
+        offset.append(nf)
+        nv += len(g.vertices)
+        nf += len(g.faces)
+    return np.concatenate(vs).astype(np.float32), np.concatenate(fs), np.array(offset, np.int64)
+
+
+@pytest.fixture(scope="module")
+def forest(bunny):
+    """The bunny and a sphere soup as two groups, 24 overlapping instances, and rays through them."""
+    soup_v, soup_f = meshes.procedural_mesh(8_000, seed=5)
+    soup_v = (soup_v - soup_v.mean(0)) / np.abs(soup_v - soup_v.mean(0)).max() * 0.1
+    groups = [Group(*bunny), Group(soup_v, soup_f)]
+    instances = _placements(24, 2, seed=11, spread=0.15)
+    world_v, world_f, offset = _flatten(groups, instances)
+    o, d = meshes.incoherent_rays(world_v, N_RAYS, seed=2)
+    co, cd = meshes.camera_rays(world_v, N_RAYS, seed=3)
+    return {"groups": groups, "instances": instances, "world_v": world_v, "world_f": world_f, "offset": offset,
+            "rays": {"incoherent": (o, d), "camera": (co, cd)}}
+
+
+def _report(mask, *cols, names=()):
+    idx = np.nonzero(mask)[0][:8]
+    return "\n".join(f"ray {i}: " + ", ".join(f"{n}={c[i]}" for n, c in zip(names, cols)) for i in idx)
+
+
+@pytest.mark.parametrize("kind", ["incoherent", "camera"])
+def test_instanced_modes_agree_exactly(forest, kind):
+    o, d = forest["rays"][kind]
+    bvhs = {tail: layerbvh.build_instanced(forest["groups"], forest["instances"], treelet_height=4, tail_rays=tail,
+                                           tail_fraction=0.25 if tail else 0.0) for tail in (0, 2048)}
+    bvhs[0].check()
+    ref = bvhs[0].trace(o, d, mode="per_ray")
+    assert np.mean(ref.prim != MISS) > 0.2, "a good share of the test rays should hit"
+    assert len(np.unique(ref.instance[ref.prim != MISS])) >= 0.8 * len(forest["instances"]), "most instances are hit"
+    for mode, tail in (("layer_sorted", 0), ("layer_sorted", 2048), ("layer_unsorted", 0)):
+        h = bvhs[tail].trace(o, d, mode=mode)
+        assert h.stats.steps > 3 and (h.stats.tail_rays > 0) == (tail > 0)
+        bad = (h.prim != ref.prim) | (h.instance != ref.instance) | (h.t != ref.t) | (h.u != ref.u) | (h.v != ref.v)
+        assert not bad.any(), f"{mode} differs from per_ray on {bad.sum()} rays:\n" + _report(
+            bad, h.instance, ref.instance, h.prim, ref.prim, h.t, ref.t,
+            names=("inst", "inst_per_ray", "prim", "prim_per_ray", "t", "t_per_ray"))
+        assert h.stats.inner_nodes == ref.stats.inner_nodes and h.stats.triangles == ref.stats.triangles
+        occ = bvhs[tail].occluded(o, d, np.full(len(o), np.inf, np.float32), mode=mode).occluded
+        assert np.array_equal(occ, ref.prim != MISS), f"{mode}: any-hit and closest-hit disagree on {(occ != (ref.prim != MISS)).sum()} rays"
+    # Small batches: the same hits again (the batching path gathers per ray, instances included).
+    small = layerbvh.build_instanced(forest["groups"], forest["instances"], treelet_height=4, batch_rays=7000)
+    h = small.trace(o, d, mode="layer_sorted")
+    assert h.stats.batches == 5 and np.array_equal(h.instance, ref.instance) and np.array_equal(h.prim, ref.prim)
+
+
+def test_instanced_matches_a_flattened_copy_and_embree_instancing(forest):
+    """Against the same geometry flattened into world-space triangles (our one-level BVH) and
+    against Embree's own instancing in Mitsuba: the same triangle on all but rounding cases."""
+    o, d = forest["rays"]["incoherent"]
+    groups, instances = forest["groups"], forest["instances"]
+    h = layerbvh.build_instanced(groups, instances).trace(o, d, mode="layer_sorted")
+    flat_id = np.where(h.prim != MISS, forest["offset"][np.minimum(h.instance, len(instances) - 1)] + h.prim, -1)
+    flat = layerbvh.build(forest["world_v"], forest["world_f"]).trace(o, d, mode="per_ray")
+    flat_ref = np.where(flat.prim != MISS, flat.prim.astype(np.int64), -1)
+    n = len(o)
+    other = flat_id != flat_ref
+    # A transformed ray is rounded to float32 in object space: a hit within rounding of an edge
+    # may go to the neighbour, nothing more.
+    assert other.sum() <= 1e-3 * n, f"{other.sum()} of {n} rays hit another triangle than the flattened copy:\n" + \
+        _report(other, flat_id, flat_ref, h.t, flat.t, names=("ours", "flat", "t", "t_flat"))
+    same = (flat_id == flat_ref) & (flat_id >= 0)
+    rel = np.abs(h.t[same] - flat.t[same]) / flat.t[same]
+    assert np.median(rel) < 1e-6 and np.quantile(rel, 0.999) < 1e-3, (np.median(rel), rel.max())
+
+    scene = embree.scene_from_instances(groups, instances)
+    t_e, inst_e, prim_e = embree.intersect_instanced(scene, o, d)
+    hit_e, hit_o = prim_e != MISS, h.prim != MISS
+    assert (hit_e != hit_o).sum() <= 1e-3 * n, f"hit/miss differs from Embree on {(hit_e != hit_o).sum()} rays"
+    both = hit_e & hit_o
+    differ = both & ((inst_e != h.instance) | (prim_e != h.prim))
+    assert differ.sum() <= 1e-3 * both.sum(), f"another triangle than Embree on {differ.sum()} rays:\n" + _report(
+        differ, inst_e, h.instance, prim_e, h.prim, t_e, h.t, names=("inst_embree", "inst", "prim_embree", "prim", "t_embree", "t"))
+    agree = both & ~differ
+    assert np.quantile(np.abs(t_e[agree] - h.t[agree]) / h.t[agree], 0.99) < 1e-4
+
+
+def test_ties_across_instances_go_to_the_lower_instance(bunny):
+    """Two instances with the same transform put the same triangles at the same distances:
+    every hit must go to the lower instance index, in every mode."""
+    v, f = bunny
+    rng = np.random.default_rng(4)
+    m = np.eye(4)
+    m[:3, :3] = _rotation(rng) * 1.3
+    other = np.eye(4)
+    other[:3, 3] = [0.5, 0, 0]
+    instances = [Instance(0, other), Instance(0, m), Instance(0, other + 0), Instance(0, m.copy())]
+    bvh = layerbvh.build_instanced([Group(v, f)], instances, treelet_height=3)
+    world_v = np.concatenate([v @ m[:3, :3].T, v + [0.5, 0, 0]]).astype(np.float32)
+    o, d = meshes.incoherent_rays(world_v, 20_000, seed=9)
+    unique = layerbvh.build_instanced([Group(v, f)], instances[:2], treelet_height=3).trace(o, d, mode="per_ray")
+    for mode in layerbvh.MODES:
+        h = bvh.trace(o, d, mode=mode)
+        hit = h.prim != MISS
+        assert hit.mean() > 0.1
+        assert set(np.unique(h.instance[hit]).tolist()) == {0, 1}, f"{mode}: a duplicate instance won a tie"
+        assert np.all(h.instance[~hit] == MISS)
+        # ... and the duplicates change nothing else: the hits of the two unique instances alone.
+        assert np.array_equal(h.instance, unique.instance) and np.array_equal(h.prim, unique.prim)
+        assert np.array_equal(h.t, unique.t)
+
+
+def test_memory_grows_with_unique_geometry_not_instances(bunny):
+    v, f = bunny
+    one = layerbvh.build_instanced([Group(v, f)], _placements(1, 1, seed=1, spread=1.0))
+    many = layerbvh.build_instanced([Group(v, f)], _placements(200, 1, seed=1, spread=1.0))
+    b1, b200 = one.stats.bytes, many.stats.bytes
+    assert b200["tris"] == b1["tris"] == len(f) * 64
+    # Per extra instance: one 64-byte record, about one top-level node (64 bytes) plus its
+    # treelet bookkeeping; nothing that scales with the group's triangles.
+    per_instance = (sum(b200.values()) - sum(b1.values())) / 199
+    assert per_instance <= 160, per_instance
+    assert many.stats.triangles == len(f) and many.stats.placed_triangles == 200 * len(f)
+    flat_bytes = 200 * (b1["tris"] + b1["nodes"])
+    assert sum(b200.values()) < flat_bytes / 50
+
+
+def test_trace_inline_matches_per_ray(forest):
+    """The megakernel path (trace_inline, no host sync) gives the same hits as per_ray."""
+    import drjit as dr
+    o, d = forest["rays"]["incoherent"]
+    bvh = layerbvh.build_instanced(forest["groups"], forest["instances"])
+    ref = bvh.trace(o, d, mode="per_ray")
+    F = bvh.m.Float
+    h = bvh.trace_inline([F(o[:, c]) for c in range(3)], [F(d[:, c]) for c in range(3)], F(np.inf), bvh.m.Bool(True))
+    dr.eval(h.t, h.prim, h.instance)
+    assert np.array_equal(h.prim.numpy(), ref.prim) and np.array_equal(h.instance.numpy(), ref.instance)
+    assert np.array_equal(h.t.numpy(), ref.t)
+
+
+def test_instances_of_empty_groups_and_no_instances_miss(bunny):
+    v, f = bunny
+    o, d = meshes.incoherent_rays(v, 4000, seed=1)
+    empty = Group(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64))
+    for groups, instances in (([empty], [Instance(0, np.eye(4))]), ([Group(v, f)], [])):
+        bvh = layerbvh.build_instanced(groups, instances)
+        bvh.check()
+        for mode in layerbvh.MODES:
+            h = bvh.trace(o, d, mode=mode)
+            assert np.all(h.prim == MISS) and np.all(h.instance == MISS) and np.all(np.isinf(h.t))
+    # An empty group next to a real one: only the real one's instances are traced.
+    bvh = layerbvh.build_instanced([empty, Group(v, f)], [Instance(0, np.eye(4)), Instance(1, np.eye(4))])
+    bvh.check()
+    h = bvh.trace(o, d, mode="layer_sorted")
+    assert set(np.unique(h.instance[h.prim != MISS]).tolist()) == {1}
+
+
+def test_top_level_boxes_hold_their_instances(forest):
+    bvh = layerbvh.build_instanced(forest["groups"], forest["instances"], treelet_height=2)
+    bvh.check()
+    parts = bvh.parts
+    # Corrupting one instance's transform after the build breaks the box invariant.
+    inst = [Instance(i.group, i.to_world.copy()) for i in bvh.instances]
+    inst[3].to_world[:, 3] += 10.0
+    with pytest.raises(AssertionError, match="does not hold instance 3"):
+        layerbvh.instances.check_instanced(parts, bvh.groups, inst)
+    assert 0 < BOX_PAD < 1e-4
+
+
+@pytest.mark.parametrize("instance,message", [
+    (Instance(2, np.eye(4)), r"instance 0: group 2 is not one of the 1 groups"),
+    (Instance(0, np.eye(3)), r"instance 0: to_world must have shape \(4, 4\) or \(3, 4\)"),
+    (Instance(0, np.diag([1.0, 1.0, 0.0, 1.0])), r"instance 0: to_world is singular"),
+    (Instance(0, np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1.0]])), r"instance 0: to_world is not affine"),
+    (Instance(0, np.full((4, 4), np.nan)), r"instance 0: to_world has non-finite entries"),
+])
+def test_bad_instances_are_refused_by_name(bunny, instance, message):
+    with pytest.raises(ValueError, match=message):
+        layerbvh.build_instanced([Group(*bunny)], [instance])
+
+
+def test_bad_groups_and_arguments_are_refused_by_name(bunny):
+    v, f = bunny
+    with pytest.raises(ValueError, match=r"group 1: faces\[0\] references vertex"):
+        layerbvh.build_instanced([Group(v, f), Group(v[:3], f[:2] + 100)], [Instance(0, np.eye(4))])
+    with pytest.raises(ValueError, match="groups and instances"):
+        layerbvh.LayerBVH(v, f, groups=[Group(v, f)], instances=[])
