@@ -11,6 +11,14 @@ MISS = 0xFFFFFFFF
 # Work counted per ray when statistics are asked for: RayState field -> Results/Hits name.
 WORK = {"n_inner": "inner_nodes", "n_leaf": "leaves", "n_tri": "triangles", "n_iter": "iterations",
         "n_steps": "steps"}
+# ... and per level in an instanced layout: the inner nodes of those that were of the top level
+# (the rest were inside instances) and the instances entered.
+INSTANCE_WORK = {"n_top": "top_inner_nodes", "n_enter": "instance_entries"}
+
+
+def work_fields(instanced: bool) -> dict:
+    """The work counted per ray: RayState field -> Results/Hits name."""
+    return {**WORK, **INSTANCE_WORK} if instanced else WORK
 
 
 class SlotRays:
@@ -86,6 +94,8 @@ class RayState:
     n_tri: object = None
     n_iter: object = None
     n_steps: object = None  # kernel calls (wavefront steps, or the per-ray kernel) the ray took part in
+    n_top: object = None
+    n_enter: object = None
     inst: object = None
     hit_inst: object = None
 
@@ -97,7 +107,7 @@ class RayState:
         s = cls(t=m.Float(tmax), u=dr.zeros(m.Float, n), v=dr.zeros(m.Float, n), prim=dr.full(m.UInt32, MISS, n),
                 link=zero, sp=zero, slot=dr.arange(m.UInt32, n), treelet=zero)
         if count_work:
-            for field in WORK:
+            for field in work_fields(instanced):
                 setattr(s, field, zero)
         if instanced:
             s.inst, s.hit_inst = dr.full(m.UInt32, MISS, n), dr.full(m.UInt32, MISS, n)
@@ -122,7 +132,7 @@ class Results:
         self.v = dr.zeros(m.Float, n)
         self.prim = dr.full(m.UInt32, MISS, n)
         self.inst = dr.full(m.UInt32, MISS, n) if instanced else None
-        self.work = {name: dr.zeros(m.UInt32, n) for name in WORK.values()}  # per ray (statistics)
+        self.work = {name: dr.zeros(m.UInt32, n) for name in work_fields(instanced).values()}  # per ray (statistics)
 
     def arrays(self) -> tuple:
         return (self.t, self.u, self.v, self.prim, *self.work.values()) + ((self.inst,) if self.inst is not None else ())
@@ -137,5 +147,5 @@ class Results:
             if dst is not None:
                 dr.scatter(dst, src, s.slot, mask)
         if s.n_iter is not None:
-            for field, name in WORK.items():
+            for field, name in work_fields(self.inst is not None).items():
                 dr.scatter(self.work[name], getattr(s, field), s.slot, mask)

@@ -23,6 +23,8 @@ class TraceStats:
     triangles: int = 0
     iterations: int = 0
     ray_steps: int = 0  # kernel calls summed over rays (each ray's wavefront steps)
+    top_inner_nodes: int = 0  # instanced layouts: of inner_nodes, those of the top level
+    instance_entries: int = 0  # instanced layouts: instances entered (object-space walks begun)
     time_sort_s: float = 0.0
     time_traverse_s: float = 0.0
     time_treelet_s: float = 0.0
@@ -49,6 +51,8 @@ class TraceStats:
         self.inner_nodes, self.leaves = totals["inner_nodes"], totals["leaves"]
         self.triangles, self.iterations = totals["triangles"], totals["iterations"]
         self.ray_steps = totals["steps"]
+        self.top_inner_nodes = totals.get("top_inner_nodes", 0)
+        self.instance_entries = totals.get("instance_entries", 0)
         tris, iters = self.triangles, self.iterations
         share = tris / iters if iters else 0.0
         self.time_leaf_s = self.time_traverse_s * share
@@ -72,7 +76,8 @@ class TraceStats:
     def as_dict(self) -> dict:
         d = asdict(self)
         d.update(inner_nodes_per_ray=self.inner_nodes_per_ray, leaves_per_ray=self.leaves_per_ray,
-                 triangles_per_ray=self.triangles_per_ray)
+                 triangles_per_ray=self.triangles_per_ray, top_inner_nodes_per_ray=self.per_ray("top_inner_nodes"),
+                 instance_entries_per_ray=self.per_ray("instance_entries"))
         return d
 
 

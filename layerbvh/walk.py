@@ -60,6 +60,7 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
     n_inner, n_leaf, n_tri, n_iter = (m.UInt32(c) if count_work else zero
                                       for c in (s.n_inner, s.n_leaf, s.n_tri, s.n_iter))
     n_steps = m.UInt32(s.n_steps) + 1 if count_work else zero
+    n_top, n_enter = (m.UInt32(s.n_top), m.UInt32(s.n_enter)) if count_work and instanced else (zero, zero)
     tri_cur, tri_end = m.UInt32(0), m.UInt32(0)
     done = m.Bool(False)
     next_treelet = m.UInt32(s.treelet)
@@ -136,6 +137,8 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
                 enter_obj = to_object_space(m, lay.instances, in_inst, world_o, world_d, entered)
                 ray = setup_ray(m, enter_obj.o, enter_obj.d)
                 link = enter_obj.root
+                if count_work:
+                    n_enter += 1
                 if bounded:  # the group's root treelet is another treelet: this step ends here
                     next_treelet = link & PAYLOAD_MASK
                     active &= False
@@ -157,6 +160,8 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
             hit_l, hit_r, t_l, t_r, link_l, link_r = hit_children(m, lay.nodes, node, ray, t_best, active)
             if count_work:
                 n_inner += 1
+                if instanced:
+                    n_top += dr.select(in_inst == MISS, m.UInt32(1), m.UInt32(0))
             right_first = hit_r & (~hit_l | (t_r < t_l))
             push = hit_l & hit_r
             far_link = dr.select(right_first, link_l, link_r)
@@ -190,6 +195,8 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
         out.inst, out.hit_inst = in_inst, hit_inst
     if count_work:
         out.n_inner, out.n_leaf, out.n_tri, out.n_iter, out.n_steps = n_inner, n_leaf, n_tri, n_iter, n_steps
+        if instanced:
+            out.n_top, out.n_enter = n_top, n_enter
     local = [(m.UInt32(loc_link[k]), m.Float(loc_t[k])) for k in range(cap)]
     return out, done, nl, local
 

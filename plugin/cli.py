@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -215,8 +216,21 @@ def main(argv=None) -> int:
     try:
         return _run(args)
     except KeyboardInterrupt:  # Ctrl-C: outputs are written whole at the end, so nothing is left
+        if not getattr(args, "no_progress", True):
+            # A bar interrupted while it draws is never cleared: end its line (on a terminal, erase it).
+            sys.stderr.write("\r\033[K" if sys.stderr.isatty() else "\n")
         print("layerbvh: interrupted; nothing written", file=sys.stderr)
         return 130
+    except Exception as e:  # a bug, not bad input: one line, the traceback kept in a file
+        import tempfile
+        import traceback
+        fd, log = tempfile.mkstemp(prefix="layerbvh-error-", suffix=".txt")
+        with os.fdopen(fd, "w") as fh:
+            traceback.print_exc(file=fh)
+        first = (str(e).strip().splitlines() or [""])[0]
+        print(f"layerbvh: internal error (please report it): {type(e).__name__}: {first}; traceback in {log}",
+              file=sys.stderr)
+        return 1
 
 
 def _run(args) -> int:

@@ -346,7 +346,10 @@ class LayerBVHPathTracer:
 
         bsdf_sample, bsdf_weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(), sampler.next_2d(), active_next)
 
-        L = dr.select(active, p.L + Le + Lr_dir, p.L)
+        # (Without either emission term L stays p.L itself: Dr.Jit's loop optimisation re-records
+        # a loop whose state comes back unchanged, and `select(active, 0 + 0, 0)` on the literal
+        # it then substitutes is a new variable, which it refuses.)
+        L = dr.select(active, p.L + Le + Lr_dir, p.L) if use.emitter_hits.on or use.emitter_sampling.on else p.L
         ray = si.spawn_ray(si.to_world(bsdf_sample.wo))
         eta = dr.select(active, eta * bsdf_sample.eta, eta)
         beta = dr.select(active, beta * bsdf_weight, beta)

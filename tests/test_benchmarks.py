@@ -98,3 +98,22 @@ def test_report_and_scaling(bench_json, tmp_path):
     for png in ("throughput_vs_height.png", "time_split.png", "scaling.png"):
         assert mpimg.imread(figs / png).shape[0] > 200, png
         assert f"figs/{png}" in text
+
+
+def test_instancing_benchmark_reports_work_per_level(tmp_path):
+    """scripts/bench_instances.py on Mitsuba's instancing scene: every mode the same hits, and the
+    counted work split by level (the top level walks far fewer nodes than the flattened BVH)."""
+    from layerbvh_mitsuba.bench import instances as bench_instances
+    out = tmp_path / "inst.json"
+    assert bench_instances.main(["--scene", str(SCENES / "instancing.xml"), "--rays", "4000", "--runs", "1",
+                                 "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["instances"] == 3 and doc["placed_triangles"] > 2 * doc["unique_triangles"]
+    assert all(r["same_hits_as_per_ray"] for r in doc["rows"] if r["structure"] == "instanced")
+    work = {(w["rays"], w["structure"], w["mode"]): w for w in doc["work"]}
+    for kind in ("camera", "incoherent"):
+        inst, flat = work[(kind, "instanced", "per_ray")], work[(kind, "flattened", "per_ray")]
+        assert inst == {**work[(kind, "instanced", "layer_sorted")], "steps": 1, "mode": "per_ray"}, "modes count alike"
+        assert 0 < inst["top_inner_nodes"] < inst["inner_nodes"] and inst["instance_entries"] > 0.1
+        assert flat["top_inner_nodes"] == flat["instance_entries"] == 0
+        assert inst["triangles"] > 0 and flat["triangles"] > 0

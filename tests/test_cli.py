@@ -6,6 +6,7 @@ from pathlib import Path
 
 import matplotlib.image as mpimg
 import numpy as np
+import pytest
 
 from layerbvh_mitsuba.cli import main
 
@@ -56,14 +57,32 @@ def test_bad_inputs_give_one_clear_line_and_no_output(tmp_path, capsys):
     bad.write_text('<scene version="3.0.0"><bsdf type="no_such_bsdf" id="b"/></scene>')
     assert main(["render", str(bad), "-o", str(out), "--no-progress"]) == 2
     assert "no_such_bsdf" in _err(capsys)
-    inst = tmp_path / "inst.xml"
-    inst.write_text("""<scene version="3.0.0"><sensor type="perspective"><film type="hdrfilm">
+    (tmp_path / "hair.txt").write_text("-1 0 0 0.1\n0 0.5 0 0.1\n1 0 0 0.1\n")
+    curve = tmp_path / "curve.xml"
+    curve.write_text("""<scene version="3.0.0"><sensor type="perspective"><film type="hdrfilm">
         <integer name="width" value="8"/><integer name="height" value="8"/></film></sensor>
-        <shape type="shapegroup" id="grp"><shape type="sphere"/></shape>
+        <shape type="shapegroup" id="grp"><shape type="linearcurve" id="hair">
+          <string name="filename" value="hair.txt"/></shape></shape>
         <shape type="instance" id="inst1"><ref id="grp"/></shape></scene>""")
-    assert main(["compare", str(inst), "--out", str(tmp_path / "cmp"), "--no-progress"]) == 2
-    assert "inst1" in _err(capsys)
+    assert main(["compare", str(curve), "--out", str(tmp_path / "cmp"), "--no-progress"]) == 2
+    err = _err(capsys)
+    assert "'hair'" in err and "linearcurve" in err and "grp" in err
     assert main(["render", str(SCENES / "cbox.xml"), "--traversal", "fast", "-o", str(out)]) == 2
     assert "--traversal" in _err(capsys)
     assert not out.exists() and not (tmp_path / "cmp").exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".tmp")]
+
+
+@pytest.mark.parametrize("traversal", ["per_ray", "layer_sorted", "embree"])
+def test_a_scene_without_emitters_renders_black_like_stock(tmp_path, capsys, traversal):
+    """Regression: with nothing to add to L, the megakernel's loop state came back unchanged and
+    Dr.Jit's loop optimisation refused the re-recorded loop (a traceback)."""
+    scene = tmp_path / "dark.xml"
+    scene.write_text("""<scene version="3.0.0"><sensor type="perspective"><film type="hdrfilm">
+        <integer name="width" value="8"/><integer name="height" value="8"/></film></sensor>
+        <shape type="shapegroup" id="grp"><shape type="sphere"/></shape>
+        <shape type="instance" id="inst1"><ref id="grp"/></shape><shape type="rectangle"/></scene>""")
+    assert main(["compare", str(scene), "--out", str(tmp_path / "cmp"), "--traversal", traversal,
+                 "--no-progress"]) == 0, _err(capsys)
+    rep = json.loads((tmp_path / "cmp" / "report.json").read_text())
+    assert rep["metrics"]["rmse"] == 0

@@ -23,12 +23,14 @@ def _rotation(rng) -> np.ndarray:
 
 
 def _placements(n: int, groups: int, seed: int, spread: float) -> list[Instance]:
-    """`n` overlapping instances: random rotation, non-uniform scale (0.5-2) and translation."""
+    """`n` overlapping instances: random rotation, non-uniform scale (0.5-2) and translation;
+    every third one mirrored (x scaled by -1: a negative determinant flips the winding)."""
     rng = np.random.default_rng(seed)
     out = []
     for k in range(n):
         m = np.eye(4)
-        m[:3, :3] = _rotation(rng) @ np.diag(rng.uniform(0.5, 2.0, 3))
+        mirror = np.array([-1.0 if k % 3 == 2 else 1.0, 1.0, 1.0])
+        m[:3, :3] = _rotation(rng) @ np.diag(rng.uniform(0.5, 2.0, 3) * mirror)
         m[:3, 3] = rng.uniform(-spread, spread, 3)
         out.append(Instance(k % groups, m))
     return out
@@ -85,6 +87,7 @@ def test_instanced_modes_agree_exactly(forest, kind):
             bad, h.instance, ref.instance, h.prim, ref.prim, h.t, ref.t,
             names=("inst", "inst_per_ray", "prim", "prim_per_ray", "t", "t_per_ray"))
         assert h.stats.inner_nodes == ref.stats.inner_nodes and h.stats.triangles == ref.stats.triangles
+        assert (h.stats.top_inner_nodes, h.stats.instance_entries) == (ref.stats.top_inner_nodes, ref.stats.instance_entries)
         occ = bvhs[tail].occluded(o, d, np.full(len(o), np.inf, np.float32), mode=mode).occluded
         assert np.array_equal(occ, ref.prim != MISS), f"{mode}: any-hit and closest-hit disagree on {(occ != (ref.prim != MISS)).sum()} rays"
     # Small batches: the same hits again (the batching path gathers per ray, instances included).
@@ -112,14 +115,17 @@ def test_instanced_matches_a_flattened_copy_and_embree_instancing(forest):
     rel = np.abs(h.t[same] - flat.t[same]) / flat.t[same]
     assert np.median(rel) < 1e-6 and np.quantile(rel, 0.999) < 1e-3, (np.median(rel), rel.max())
 
+    assert sum(np.linalg.det(i.to_world[:3, :3]) < 0 for i in instances) == len(instances) // 3, "mirrored ones"
     scene = embree.scene_from_instances(groups, instances)
     t_e, inst_e, prim_e = embree.intersect_instanced(scene, o, d)
     hit_e, hit_o = prim_e != MISS, h.prim != MISS
-    assert (hit_e != hit_o).sum() <= 1e-3 * n, f"hit/miss differs from Embree on {(hit_e != hit_o).sum()} rays"
     both = hit_e & hit_o
     differ = both & ((inst_e != h.instance) | (prim_e != h.prim))
-    assert differ.sum() <= 1e-3 * both.sum(), f"another triangle than Embree on {differ.sum()} rays:\n" + _report(
-        differ, inst_e, h.instance, prim_e, h.prim, t_e, h.t, names=("inst_embree", "inst", "prim_embree", "prim", "t_embree", "t"))
+    # The issue's bar: the same answer as Embree on >= 99.99% of the rays (measured: 200k rays,
+    # 1-2 differ, all within rounding of a shared edge).
+    assert ((hit_e != hit_o) | differ).sum() <= 1e-4 * n, (
+        f"hit/miss differs from Embree on {(hit_e != hit_o).sum()} rays, another triangle on {differ.sum()}:\n" + _report(
+        differ, inst_e, h.instance, prim_e, h.prim, t_e, h.t, names=("inst_embree", "inst", "prim_embree", "prim", "t_embree", "t")))
     agree = both & ~differ
     assert np.quantile(np.abs(t_e[agree] - h.t[agree]) / h.t[agree], 0.99) < 1e-4
 
@@ -224,3 +230,28 @@ def test_bad_groups_and_arguments_are_refused_by_name(bunny):
         layerbvh.build_instanced([Group(v, f), Group(v[:3], f[:2] + 100)], [Instance(0, np.eye(4))])
     with pytest.raises(ValueError, match="groups and instances"):
         layerbvh.LayerBVH(v, f, groups=[Group(v, f)], instances=[])
+
+
+def test_per_level_work_is_the_flat_walk_plus_the_top_level(bunny):
+    """One identity instance of the bunny against the bunny as a plain mesh: the top level is one
+    node per ray, a ray enters the instance iff it meets the (padded) box, and inside it walks
+    exactly the flat BVH's nodes, less the root test of the rays that never entered."""
+    v, f = bunny
+    o, d = meshes.incoherent_rays(v, 20_000, seed=1)
+    n = len(o)
+    flat = layerbvh.build(v, f, treelet_height=4)
+    one = layerbvh.build_instanced([Group(v, f)], [Instance(0, np.eye(4))], treelet_height=4)
+    lo, hi = v.min(0).astype(np.float64), v.max(0).astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t0, t1 = (lo - o) / d, (hi - o) / d
+    meets = np.nanmax(np.minimum(t0, t1), 1) <= np.nanmin(np.maximum(t0, t1), 1)
+    meets &= np.nanmin(np.maximum(t0, t1), 1) >= 0
+    for mode in ("per_ray", "layer_sorted", "layer_unsorted"):
+        a, b = flat.trace(o, d, mode=mode), one.trace(o, d, mode=mode)
+        assert np.array_equal(a.prim, b.prim)
+        st = b.stats
+        assert st.top_inner_nodes == n, mode
+        assert abs(st.instance_entries - meets.sum()) <= 1e-3 * n, (mode, st.instance_entries, meets.sum())
+        assert st.inner_nodes - st.top_inner_nodes == a.stats.inner_nodes - (n - st.instance_entries), mode
+        assert st.as_dict()["instance_entries_per_ray"] == st.instance_entries / n
+    assert flat.trace(o, d, mode="per_ray").stats.instance_entries == 0

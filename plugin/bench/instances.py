@@ -87,7 +87,7 @@ def main(argv=None) -> int:
     eye = np.array(scene.sensors()[0].world_transform().matrix, np.float64).reshape(4, 4)[:3, 3]
     ray_sets = {"camera": _camera_rays(eye, lo, hi, args.rays, args.seed),
                 "incoherent": meshes.incoherent_rays(placed, args.rays, args.seed + 1)}
-    rows = []
+    rows, work = [], []
     for kind, (o, d) in ray_sets.items():
         m = builds["instanced"].m
         o_dev = m.Array3f(*(m.Float(np.ascontiguousarray(o[:, c])) for c in range(3)))
@@ -134,9 +134,16 @@ def main(argv=None) -> int:
                                                    and np.array_equal(h.instance.numpy(), ref.instance.numpy())
                                                    and np.array_equal(h.t.numpy(), ref.t.numpy()))
             rows.append(row)
+        # Per-level work, from one counted (untimed) pass per structure and mode.
+        for name in ("instanced", "flattened"):
+            for mode in ("per_ray", "layer_sorted"):
+                c = builds[name].trace(o_dev, d_dev, mode=mode, stats=True).stats
+                work.append({"rays": kind, "structure": name, "mode": mode, "steps": c.steps,
+                             **{k: c.per_ray(k) for k in ("inner_nodes", "top_inner_nodes", "instance_entries",
+                                                           "leaves", "triangles")}})
     st = builds["instanced"].stats
     doc = {"scene": args.scene, "height": args.height, "runs": args.runs, "unique_triangles": st.triangles,
-           "placed_triangles": st.placed_triangles, "instances": st.instances, "rows": rows,
+           "placed_triangles": st.placed_triangles, "instances": st.instances, "rows": rows, "work": work,
            "threads": dr.thread_count()}
     print(f"{args.scene}: {st.triangles:,} triangles stored, {st.placed_triangles:,} placed by {st.instances} "
           f"instances; h={args.height}, {args.rays:,} rays per set, median of {args.runs} interleaved runs")
@@ -149,6 +156,19 @@ def main(argv=None) -> int:
             same = {True: "yes", False: "NO"}.get(r.get("same_hits_as_per_ray"), "-")
             print(f"| {kind} | {r['structure']} | {r['mode']} | {r['mrays_s']:.2f} | {r['mrays_s'] / base:.2f} | {mib} "
                   f"| {r['build_s']:.2f} | {same} |")
+    print("\nWork per ray by level (one counted pass): inner nodes of the top level and inside instances, "
+          "instances entered, leaves, triangles; wavefront steps")
+    print("| rays | structure | mode | top-level nodes | nodes in instances | instances entered | leaves | triangles "
+          "| steps |")
+    print("|---|---|---|---:|---:|---:|---:|---:|---:|")
+    for w in work:
+        if w["structure"] == "flattened":  # one level: every node is the top level's
+            levels = f"{w['inner_nodes']:.1f} | - | -"
+        else:
+            levels = (f"{w['top_inner_nodes']:.1f} | {w['inner_nodes'] - w['top_inner_nodes']:.1f} "
+                      f"| {w['instance_entries']:.2f}")
+        print(f"| {w['rays']} | {w['structure']} | {w['mode']} | {levels} | {w['leaves']:.1f} "
+              f"| {w['triangles']:.1f} | {w['steps']} |")
     if args.json:
         atomic.write_text(args.json, json.dumps(doc, indent=1) + "\n")
     return 0
