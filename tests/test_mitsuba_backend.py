@@ -15,7 +15,7 @@ SCENES = Path(__file__).resolve().parents[1] / "scenes"
 
 
 @pytest.mark.parametrize("name,traversal", [("cbox", "per_ray"), ("cbox", "layer_sorted"), ("cbox", "embree"),
-                                            ("bunny_box", "per_ray"), ("sphere_box", "per_ray"),
+                                            ("bunny_box", "per_ray"), ("bunny_box", "layer_sorted"), ("sphere_box", "per_ray"),
                                             ("sphere_box", "auto"), ("empty_box", "layer_unsorted")])
 def test_same_seed_matches_stock(name, traversal, tmp_path):
     r = testing.assert_matches_stock(SCENES / f"{name}.xml", spp=8, res=(32, 32), traversal=traversal,
