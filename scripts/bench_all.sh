@@ -20,7 +20,7 @@ cp out/sweep_bench/bench.json docs/bench/bench.json
 $PY scripts/bench_scaling.py --heights 4,8 --json docs/bench/scaling.json
 # Error against time: one point per configuration, merged per scene by the sweep.
 $LAYERBVH sweep scenes/paper_mix.xml --job converge --budget 40 --res 128 128 --ref-spp 4096 \
-    --configs stock,per_ray,layer_sorted:8,auto --rerun --out out/sweep_converge $SWEEP_ARGS
+    --configs stock,embree,per_ray,layer_sorted:8,auto --rerun --out out/sweep_converge $SWEEP_ARGS
 rm -rf docs/converge/paper_mix
 cp -r out/sweep_converge/converge/paper_mix docs/converge/paper_mix
 $PY scripts/report.py --bench docs/bench/bench_meshes.json --bench docs/bench/bench.json \
