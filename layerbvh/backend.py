@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import platform
 
 import drjit as dr
 
@@ -21,6 +22,17 @@ def default_backend() -> str:
     if env:
         return env
     return "cuda" if dr.has_backend(dr.JitBackend.CUDA) else "llvm"
+
+
+def cpu_model() -> str:
+    """The CPU's model name (Linux /proc/cpuinfo), else what `platform` says: part of what a
+    timing depends on (auto's decisions, benchmark headers)."""
+    model = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as fh:
+            return next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), model)
+    except OSError:
+        return model
 
 
 def backend_of(x) -> str | None:

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import platform
 import re
 import time
 from dataclasses import dataclass, field
@@ -321,14 +320,9 @@ class SceneTracer:
         for p in self.geometry.placements:
             h.update(json.dumps([p.group, p.to_world.tolist()]).encode())
         st = self.bvh.stats
-        cpu = platform.processor() or platform.machine()
-        try:
-            with open("/proc/cpuinfo") as fh:
-                cpu = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), cpu)
-        except OSError:
-            pass
         h.update(json.dumps({"treelet_height": st.treelet_height, "leaf_size": st.leaf_size,
-                             "batch_rays": self.bvh.batch_rays, "backend": self.bvh.backend, "cpu": cpu,
+                             "batch_rays": self.bvh.batch_rays, "backend": self.bvh.backend,
+                             "cpu": layerbvh.backend.cpu_model(),
                              "threads": dr.thread_count(), "layerbvh": layerbvh.__version__}).encode())
         return h.hexdigest()
 

@@ -352,13 +352,7 @@ def print_table(rows: list[dict]) -> None:
 
 
 def machine_info(backend: str) -> dict:
-    model = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            model = next((ln.split(":", 1)[1].strip() for ln in fh if ln.startswith("model name")), model)
-    except OSError:
-        pass
-    return {"cpu": model, "cores": os.cpu_count(), "os": platform.platform(),
+    return {"cpu": layerbvh.backend.cpu_model(), "cores": os.cpu_count(), "os": platform.platform(),
             "drjit_threads": dr.thread_count(), "layerbvh_backend": backend, "embree": "mitsuba llvm_ad_rgb"}
 
 
