@@ -14,11 +14,12 @@ AUTO_WARMUP_RAYS = 4096  # compiles both modes' kernels before anything is timed
 AUTO_ROUNDS = 3  # timed rounds, alternating which mode goes first; the median decides
 AUTO_MARGIN = 0.05  # layer_sorted must be this much faster: it also needs far more memory
 # What is decided without timing, per backend. On the CPU (BENCHMARKS.md: 2-core Zen 3, AVX2)
-# sorting lost on every camera and shadow ray set (0.5-0.84x per_ray) and won only on
-# incoherent batches of 1M rays; a few rays per treelet cannot repay a sort and a launch per
-# step. Nothing has been measured on a GPU yet, so there every kind from 2^16 rays is timed.
+# sorting lost on every camera and shadow ray set (0.59-0.84x per_ray) and on every set below
+# 500k rays (0.62-0.80x), and won or tied only on incoherent batches of 0.85-1M rays (up to
+# 1.11x); a few rays per treelet cannot repay a sort and a launch per step. Nothing has been
+# measured on a GPU yet, so there every kind from 2^16 rays is timed.
 RULES = {
-    "llvm": {"min_rays": 1 << 20, "per_ray_hints": ("camera", "shadow")},
+    "llvm": {"min_rays": 1 << 19, "per_ray_hints": ("camera", "shadow")},
     "cuda": {"min_rays": 1 << 16, "per_ray_hints": ()},
 }
 

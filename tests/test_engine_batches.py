@@ -33,7 +33,7 @@ def test_batch_size_is_checked(bunny):
 
 def test_auto_returns_the_same_hits_and_records_its_choice(procedural):
     v, f = procedural
-    policy = layerbvh.AutoPolicy(min_rays=1 << 16)  # the CPU rule times only from 2^20 rays
+    policy = layerbvh.AutoPolicy(min_rays=1 << 16)  # the CPU rule times only from 2^19 rays
     bvh = layerbvh.build(v, f, treelet_height=3, backend="llvm", auto_policy=policy)
     o, d = meshes.incoherent_rays(v, 70_000, seed=5)
     ref = bvh.trace(o, d, mode="per_ray")
@@ -57,7 +57,7 @@ def test_auto_returns_the_same_hits_and_records_its_choice(procedural):
     again.load(policy.choices)
     assert again.known(False, "bounce", 70_000, bvh.stats.treelets) == choice["mode"]
     assert layerbvh.AutoPolicy().known(False, "bounce", 70_000, bvh.stats.treelets) == "per_ray", \
-        "the CPU rule: below 2^20 rays per_ray"
+        "the CPU rule: below 2^19 rays per_ray"
 
 
 @pytest.mark.parametrize("mode", layerbvh.MODES)
