@@ -160,7 +160,10 @@ def ctrl_c(tmp: Path) -> Outcome:
     # Progress on: the bar's first line on stderr says rendering has started.
     p = subprocess.Popen([sys.executable, "-m", "layerbvh_mitsuba.cli", "render", str(SCENES / "cbox.xml"),
                           "--spp", str(40 * 64), "--res", "48", "48", "--traversal", "per_ray", "-o", str(out)],
-                         stderr=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0)
+                         stderr=subprocess.PIPE, stdout=subprocess.PIPE, bufsize=0,
+                         # As from a terminal: a shell's background job (CI runners, `cmd &`)
+                         # starts with SIGINT ignored, which the child would inherit.
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + TIMEOUT_S
     seen = ""
     # Unbuffered byte reads: communicate() below reads the raw pipe, so anything a buffered
