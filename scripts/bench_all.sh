@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Reproduce BENCHMARKS.md: the traversal benchmark on generated meshes, the recorded-ray grid and
 # the error-vs-time run as `layerbvh sweep` grids (timed points one at a time), the scaling
-# benchmark, and the report (about 40 minutes on 2 cores). Run after scripts/bootstrap.sh (or
+# benchmark, and the report (about 26 minutes on 2 cores). Run after scripts/bootstrap.sh (or
 # scripts/test.sh) has created .venv. SWEEP_ARGS="--scheduler ADDRESS" runs the grids on a Dask
 # cluster instead of local worker processes (its machines need the repository at the same path).
 set -euo pipefail
