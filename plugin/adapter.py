@@ -116,6 +116,14 @@ class SceneGeometry:
         """Unique triangles (a shapegroup's once, however often it is placed)."""
         return sum(len(g.faces) for g in self.groups)
 
+    def engine_groups(self) -> list:
+        """The groups as layerbvh.build_instanced takes them."""
+        return [layerbvh.Group(g.vertices, g.faces) for g in self.groups]
+
+    def engine_instances(self) -> list:
+        """The placements as layerbvh.build_instanced takes them."""
+        return [layerbvh.Instance(p.group, p.to_world) for p in self.placements]
+
     def world_triangles(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Every placed triangle in world space (tools and checks only; the traversal keeps each
         group once): (vertices, faces, first flat face of each placement). A scene without
@@ -291,8 +299,7 @@ class SceneTracer:
         params = dict(treelet_height=treelet_height, leaf_size=leaf_size, backend=backend, batch_rays=batch_rays)
         if g.instanced:
             # Each shapegroup's triangles once; the scene's own meshes are one more placement.
-            self.bvh = layerbvh.build_instanced([layerbvh.Group(gr.vertices, gr.faces) for gr in g.groups],
-                                                [layerbvh.Instance(p.group, p.to_world) for p in g.placements], **params)
+            self.bvh = layerbvh.build_instanced(g.engine_groups(), g.engine_instances(), **params)
             first = np.cumsum([0] + [len(gr.faces) for gr in g.groups])
             # Per engine instance: its group's first triangle in the tables below, and the
             # Mitsuba Instance it is (WORLD for the scene's own meshes).

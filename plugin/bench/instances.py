@@ -62,8 +62,7 @@ def main(argv=None) -> int:
     if not g.instanced:
         print(f"bench_instances: {args.scene} has no instances", flush=True)
         return 2
-    groups = [layerbvh.Group(gr.vertices, gr.faces) for gr in g.groups]
-    insts = [layerbvh.Instance(pl.group, pl.to_world) for pl in g.placements]
+    groups, insts = g.engine_groups(), g.engine_instances()
     world_v, world_f, _ = g.world_triangles()
 
     builds = {}
