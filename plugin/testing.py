@@ -17,6 +17,7 @@ class SameSeedResult:
     max_abs: float
     stock: np.ndarray
     ours: np.ndarray
+    ours_stats: dict  # the layerbvh integrator's last_stats (loop, rays, wavefront_steps, modes_used, ...)
 
     def summary(self) -> str:
         return (f"{100 * self.frac_within:.3f}% of pixels within tolerance, mean |diff| {self.mean_abs:.3g} "
@@ -34,8 +35,11 @@ def load(scene_path, res=None, **params):
     return load_scene(_mi(), scene_path, res, **params)
 
 
-def render_pair(scene, spp: int, seed: int = 0, traversal: str = "per_ray", ours_scene=None, **ours_props):
-    """Stock `path` (with the scene's own settings) and `layerbvh` images of one scene, same seed."""
+def render_pair(scene, spp: int, seed: int = 0, traversal: str = "per_ray", ours_scene=None, stats_out=None,
+                **ours_props):
+    """Stock `path` (with the scene's own settings) and `layerbvh` images of one scene, same seed.
+    `ours_props` go to the layerbvh integrator (e.g. treelet_height); `stats_out` (a dict), if
+    given, receives the integrator's last_stats."""
     mi = _mi()
     from .render import path_props
     props = path_props(mi, scene)
@@ -43,26 +47,31 @@ def render_pair(scene, spp: int, seed: int = 0, traversal: str = "per_ray", ours
     ours = mi.load_dict({"type": "layerbvh", "traversal": traversal, **props, **ours_props})
     a = np.array(mi.render(scene, integrator=stock, spp=spp, seed=seed), np.float32)
     b = np.array(mi.render(ours_scene or scene, integrator=ours, spp=spp, seed=seed), np.float32)
+    if stats_out is not None:
+        stats_out.update(ours.last_stats)
     return a, b
 
 
-def same_seed(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", tol=SAME_SEED_TOL,
+def same_seed(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", tol=SAME_SEED_TOL, ours_props=None,
               **params) -> SameSeedResult:
+    """Same-seed stock and layerbvh renders of an XML scene (`params`: its $parameters;
+    `ours_props`: extra layerbvh integrator properties such as treelet_height)."""
     scene = load(scene_path, res, **params)
-    a, b = render_pair(scene, spp, seed, traversal)
+    stats: dict = {}
+    a, b = render_pair(scene, spp, seed, traversal, stats_out=stats, **(ours_props or {}))
     v = same_seed_verdict(a, b, tol)["values"]
     return SameSeedResult(frac_within=v["frac_within"], mean_abs=v["mean_abs"], mean_ref=v["mean_ref"],
-                          max_abs=v["max_abs"], stock=a, ours=b)
+                          max_abs=v["max_abs"], stock=a, ours=b, ours_stats=stats)
 
 
 def assert_matches_stock(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", tol=SAME_SEED_TOL,
                          min_frac=SAME_SEED_MIN_FRAC, max_mean_rel=SAME_SEED_MAX_MEAN_REL, diff_dir=None,
-                         **params) -> SameSeedResult:
+                         ours_props=None, **params) -> SameSeedResult:
     """Same seed: the layerbvh render must equal stock `path` (metrics.same_seed_verdict): within
     `tol` in `min_frac` of the pixels, with mean |diff| <= max_mean_rel * mean pixel value. On
     failure the message gives the numbers and, with `diff_dir`, the stock/ours/diff images are
     saved there as EXR."""
-    r = same_seed(scene_path, spp, res, seed, traversal, tol, **params)
+    r = same_seed(scene_path, spp, res, seed, traversal, tol, ours_props, **params)
     ok = r.frac_within >= min_frac and r.mean_abs <= max_mean_rel * r.mean_ref
     if not ok:
         where = ""
@@ -87,9 +96,11 @@ def repeated_moments(scene, integrator, spp: int, repeats: int, seed0: int):
 
 
 def zscore_vs_stock(scene_path, spp=64, res=(8, 8), repeats=8, traversal="per_ray", alpha=0.01,
-                    modify=None, **params) -> dict:
+                    modify=None, ours_props=None, **params) -> dict:
     """Independent seeds: per-pixel Z-test (Šidák-corrected) of layerbvh against stock `path`.
-    `modify(params)` may change the scene for the layerbvh render (a negative control)."""
+    `modify(params)` may change the scene for the layerbvh render (a negative control);
+    `ours_props`: extra layerbvh integrator properties. The result also holds `ours_stats`, the
+    integrator's last_stats of its last repeat."""
     mi = _mi()
     from .render import path_props
     from .metrics import zscore_test
@@ -103,10 +114,11 @@ def zscore_vs_stock(scene_path, spp=64, res=(8, 8), repeats=8, traversal="per_ra
         p = mi.traverse(ours_scene)
         modify(p)
         p.update()
-    ours = mi.load_dict({"type": "layerbvh", "traversal": traversal, **props})
+    ours = mi.load_dict({"type": "layerbvh", "traversal": traversal, **props, **(ours_props or {})})
     mean, var = repeated_moments(ours_scene, ours, spp, repeats, seed0=5000)
     # Variance of a repeat's mean; zscore_test divides by the repeat count.
-    return zscore_test(ref_mean, ref_var, mean, var, repeats, repeats, alpha=alpha)
+    return {**zscore_test(ref_mean, ref_var, mean, var, repeats, repeats, alpha=alpha),
+            "ours_stats": dict(ours.last_stats)}
 
 
 def assert_statistically_matches_stock(scene_path, min_pass=0.975, **kw) -> dict:
