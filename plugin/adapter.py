@@ -209,10 +209,23 @@ def _mesh_arrays(shape, name: str, shape_index: int):
     return v, f, np.full(len(f), shape_index, np.uint32), np.arange(len(f), dtype=np.uint32)
 
 
-def _group(name: str, parts: list) -> MeshGroup:
-    """One MeshGroup from (vertices, faces, tri_shape, tri_local) of several meshes."""
+def _mesh_digest(v: np.ndarray, f: np.ndarray) -> bytes:
+    """SHA-256 of one mesh's vertices and faces (its own indices)."""
+    h = hashlib.sha256(np.ascontiguousarray(v, np.float32).tobytes())
+    h.update(np.ascontiguousarray(f, np.int64).tobytes())
+    return h.digest()
+
+
+def _group(name: str, parts: list, ids: list | None = None) -> MeshGroup:
+    """One MeshGroup from (vertices, faces, tri_shape, tri_local) of several meshes, in an order
+    of their own: sorted by content (then by the shape's id). Mitsuba loads shapes in parallel, so
+    scene.shapes() comes in another order from one load to the next; concatenated in that order,
+    the same scene would build another BVH, break ties between coplanar triangles another way and
+    get another `auto` key on every load (tri_shape still maps each triangle to its shape)."""
+    ids = ids or [""] * len(parts)
+    order = sorted(range(len(parts)), key=lambda i: (_mesh_digest(parts[i][0], parts[i][1]), ids[i]))
     verts, faces, tri_shape, tri_local, offset = [], [], [], [], 0
-    for v, f, ts, tl in parts:
+    for v, f, ts, tl in (parts[i] for i in order):
         verts.append(v)
         faces.append(f + offset)
         tri_shape.append(ts)
@@ -231,7 +244,7 @@ def _is_plain_mesh(shape) -> bool:
 def collect_geometry(scene) -> SceneGeometry:
     """World-space triangles of every mesh shape, the analytic shapes, and the shapegroups the
     scene's instances place (each once, in its object space); refuse anything else by name."""
-    world, analytic, names = [], [], []
+    world, world_ids, analytic, names = [], [], [], []
     shapegroups = {obj.id(): obj for _, obj in _children(scene) if _is_shapegroup(obj)}
     group_of: dict[str, int] = {}  # shapegroup id -> index into groups
     groups: list[MeshGroup] = []
@@ -243,25 +256,27 @@ def collect_geometry(scene) -> SceneGeometry:
             instance_at.append((i, shape))
         elif _is_plain_mesh(shape):
             world.append(_mesh_arrays(shape, f"shape {describe(shape)}", i))
+            world_ids.append(shape.id())
         else:
             analytic += _analytic_tests(shape, i, i)
-    groups.append(_group("scene meshes", world))
+    groups.append(_group("scene meshes", world, world_ids))
     placements = []
     for i, inst in instance_at:
         sg = _shapegroup_of(inst, i, shapegroups)
         gid = sg.id()
         if gid not in group_of:
-            parts, tests = [], []
+            parts, part_ids, tests = [], [], []
             for c, (_, child) in enumerate(_children(sg)):
                 where = f" in shapegroup '{gid}'"
                 if child.class_name() == "Instance" or _is_shapegroup(child):  # Mitsuba 3.9 refuses these itself
                     raise UnsupportedShapeError(f"shape {describe(child)}{where}: nested instancing is not supported")
                 if _is_plain_mesh(child):
                     parts.append(_mesh_arrays(child, f"shape {describe(child)}{where}", c))
+                    part_ids.append(child.id())
                 else:
                     tests += _analytic_tests(child, None, c, where)
             group_of[gid] = len(groups)
-            groups.append(_group(f"shapegroup '{gid}'", parts))
+            groups.append(_group(f"shapegroup '{gid}'", parts, part_ids))
             group_tests[gid] = tests
         m = np.array(mi.traverse(inst)["to_world"].matrix, np.float64).reshape(4, 4)
         placements.append(Placement(group_of[gid], m, i))
@@ -279,6 +294,17 @@ def collect_geometry(scene) -> SceneGeometry:
         # so they win ties against instances).
         placements.insert(0, Placement(0, np.eye(4), None))
     return SceneGeometry(groups=groups, placements=placements, analytic=analytic, shape_names=names)
+
+
+def _analytic_descriptor(test: AnalyticTest, geometry: SceneGeometry) -> str:
+    """An analytic shape's content for the auto key: its type, bounding box, primitive and the
+    placement of the instance it sits in (not its index in scene.shapes(): load order)."""
+    b = test.shape.bbox()
+    box = [list(map(float, b.min)), list(map(float, b.max))]
+    place = None
+    if test.instance is not None:
+        place = next(p.to_world.tolist() for p in geometry.placements if p.instance == test.instance)
+    return json.dumps([test.shape.class_name(), box, test.prim, place])
 
 
 class SceneTracer:
@@ -318,14 +344,22 @@ class SceneTracer:
         self.recorder = None  # a record.RayRecorder to capture every traced ray by kind
 
     def device_key(self) -> str:
-        """What `auto`'s decisions depend on besides the rays: the scene's triangles, the BVH's
-        parameters, the backend and the device. A SHA-256, so any change gives a new key."""
+        """What `auto`'s decisions depend on besides the rays: the scene's content (triangles,
+        placements, analytic shapes), the BVH's parameters, the backend and the device. A
+        SHA-256, so any change gives a new key; independent of the order in which Mitsuba
+        loaded the shapes (each group's meshes are in content order, see `_group`, and groups,
+        placements and analytic shapes are hashed as sorted lists)."""
+        g = self.geometry
+        group_digest = []
+        for gr in g.groups:
+            group_digest.append(_mesh_digest(gr.vertices, gr.faces).hex())
         h = hashlib.sha256()
-        for gr in self.geometry.groups:
-            h.update(np.ascontiguousarray(gr.vertices).tobytes())
-            h.update(np.ascontiguousarray(gr.faces).tobytes())
-        for p in self.geometry.placements:
-            h.update(json.dumps([p.group, p.to_world.tolist()]).encode())
+        content = {
+            "groups": sorted(group_digest),
+            "placements": sorted(json.dumps([group_digest[p.group], p.to_world.tolist()]) for p in g.placements),
+            "analytic": sorted(_analytic_descriptor(t, g) for t in g.analytic),
+        }
+        h.update(json.dumps(content).encode())
         st = self.bvh.stats
         h.update(json.dumps({"treelet_height": st.treelet_height, "leaf_size": st.leaf_size,
                              "batch_rays": self.bvh.batch_rays, "backend": self.bvh.backend,

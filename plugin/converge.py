@@ -135,7 +135,7 @@ def reference_key(scene: Path, settings: dict) -> str:
 def reference(mi, scene, scene_path: Path, settings: dict, cache: Path, progress: bool) -> tuple[np.ndarray, dict]:
     """The stock reference image: read from the cache when its key and the EXR's SHA-256 match,
     else rendered and stored (a damaged or replaced cache file is rendered again, with a notice)."""
-    from .render import render_passes, write_exr
+    from .render import read_exr, render_passes, write_exr
     key = reference_key(scene_path, settings)
     exr, meta = cache / f"{key[:24]}.exr", cache / f"{key[:24]}.json"
     if exr.is_file() and meta.is_file():
@@ -143,7 +143,7 @@ def reference(mi, scene, scene_path: Path, settings: dict, cache: Path, progress
             info = json.loads(meta.read_text())
             data = exr.read_bytes()
             if info.get("key") == key and hashlib.sha256(data).hexdigest() == info.get("exr_sha256"):
-                img = np.array(mi.Bitmap(str(exr)), np.float32)[:, :, :3]
+                img = read_exr(exr)[:, :, :3]
                 if list(img.shape[:2]) == list(settings["resolution"][::-1]):
                     return img, {**info, "path": str(exr), "cached": True}
             problem = "does not match its checksum" if info.get("key") == key else "belongs to other settings"

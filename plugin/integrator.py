@@ -72,6 +72,7 @@ class SceneState:
     tracer: SceneTracer | None
     features: Features
     auto_file: Path | None = None
+    prepass_s: float = 0.0  # auto's pre-passes, less compilation and the policy's own timing
 
 
 @dataclass
@@ -193,19 +194,67 @@ class LayerBVHPathTracer:
         return out
 
     def calibration_s(self) -> float:
-        """Seconds auto has spent timing modes for the current scene, all renders together."""
-        tracer = self._state.tracer if self._state is not None else None
-        return tracer.bvh.auto.calibration_s if tracer is not None else 0.0
+        """Seconds auto has spent deciding for the current scene, all renders together: its
+        pre-passes and timing runs, without kernel compilation (which timed_render reports)."""
+        state = self._state
+        if state is None or state.tracer is None:
+            return 0.0
+        return state.tracer.bvh.auto.calibration_s + state.prepass_s
 
-    def _plan_auto(self, state: SceneState, rays: int) -> bool:
-        """auto: settle what it can before tracing, for each kind of batch the render traces
-        (camera and bounce rays: closest hit; shadow rays: any hit), `rays` each (one per pixel
-        sample). True when every kind goes per_ray, so the render can be one megakernel."""
+    # -- auto: decided before the render -------------------------------------------------------
+    PREPASS_SEED = 0x5EED  # the pre-pass's own sampler; the render's sampler is never touched
+
+    def _auto_kinds(self, state: SceneState) -> list[tuple[bool, str]]:
+        """(any_hit, hint) of every kind of batch this render traces."""
+        if self.max_depth == 0:
+            return []  # nothing is traced
+        kinds = [(False, "camera")]
+        if self.max_depth < 0 or self.max_depth > 1:
+            kinds.append((False, "bounce"))
+        if state.features.emitter_sampling.on:
+            kinds.append((True, "shadow"))
+        return kinds
+
+    def _plan_auto(self, scene, state: SceneState, ray: mi.Ray3f) -> bool:
+        """auto: decide every kind of batch this render traces before it starts. All of a
+        render's batches of one kind have the pass's width (paths keep their lanes; the
+        traversal compacts the live ones), so one decision per kind covers the render. What no
+        rule or kept decision settles is timed in a pre-pass on this scene's rays
+        (`_prepass`). True when every kind goes per_ray: the render is then one megakernel, the
+        same kernel `per_ray` runs."""
         tracer = state.tracer
         policy, treelets = tracer.bvh.auto, tracer.bvh.stats.treelets
-        kinds = [(False, "camera"), (False, "bounce"), (True, "shadow")]
-        modes = [policy.settle(any_hit, hint, min(rays, self.batch_rays), treelets) for any_hit, hint in kinds]
-        return all(mode == "per_ray" for mode in modes)
+        k = min(dr.width(ray.o), self.batch_rays)  # what one traced batch holds
+
+        def modes():
+            return [policy.settle(any_hit, hint, k, treelets) for any_hit, hint in self._auto_kinds(state)]
+        if None in modes() and tracer.recorder is None:
+            self._prepass(scene, state, ray, k)
+        return all(mode == "per_ray" for mode in modes())
+
+    def _prepass(self, scene, state: SceneState, ray: mi.Ray3f, k: int) -> None:
+        """Time auto's open decisions on rays of this scene, before the render: the pass's first
+        `k` camera rays (one batch, as the render traces it) and one path vertex on them, shaded
+        with a sampler of its own (PREPASS_SEED), so its camera hits, shadow rays and first
+        bounce rays reach the traversal with mode auto, which times each open kind on this
+        batch (AutoPolicy.decide). The render's sampler is not touched: the image is the same
+        with or without a pre-pass. Its wall time less kernel compilation is calibration."""
+        from .compile_clock import CompileClock
+        tracer = state.tracer
+        policy_s = tracer.bvh.auto.calibration_s
+        t0 = time.perf_counter()
+        with CompileClock() as clock:
+            idx = dr.arange(mi.UInt32, k)
+            take = (lambda x: x if dr.width(x) == 1 else dr.gather(type(x), x, idx))
+            cam = mi.Ray3f(take(ray.o), take(ray.d))
+            cam.maxt = take(ray.maxt)
+            sampler = mi.load_dict({"type": "independent"})
+            sampler.seed(self.PREPASS_SEED, k)
+            active = dr.full(mi.Bool, True, k)
+            path = self._start_path(scene, cam, tracer.intersect(cam, active, hint="camera"), active)
+            self._vertex(scene, sampler, state.features, tracer, path, megakernel=False)
+        state.prepass_s += (time.perf_counter() - t0 - clock.seconds
+                            - (tracer.bvh.auto.calibration_s - policy_s))
 
     def _keep_auto_choices(self, state: SceneState) -> None:
         """Persist auto's timed decisions, so later runs on this scene, BVH and device skip timing."""
@@ -234,13 +283,14 @@ class LayerBVHPathTracer:
     # calling the base render again would nest two of them, which loses Ctrl-C. `sample` runs
     # once per render (JIT variants trace all of a pass's samples at once), so it brackets it.
 
-    def _begin(self, state: SceneState, rays: int) -> dict:
-        if state.tracer is not None:
-            state.tracer.reset_counters()
-        self._vertices = 0
+    def _begin(self, scene, state: SceneState, ray: mi.Ray3f) -> dict:
+        start = {"t0": time.perf_counter(), "calibration_s": self.calibration_s()}
         if self.traversal == layerbvh.AUTO:
-            self._auto_per_ray = self._plan_auto(state, rays)
-        return {"t0": time.perf_counter(), "calibration_s": self.calibration_s()}
+            self._auto_per_ray = self._plan_auto(scene, state, ray)
+        if state.tracer is not None:
+            state.tracer.reset_counters()  # (the pre-pass's queries are not the render's)
+        self._vertices = 0
+        return start
 
     def _finish(self, state: SceneState, start: dict, megakernel: bool) -> None:
         """`last_stats` of this render (in the megakernel the work runs after `sample` returns, so
@@ -277,7 +327,7 @@ class LayerBVHPathTracer:
     def sample(self, scene, sampler, ray, medium=None, active=True):
         state = self.scene_state(scene)
         tracer = state.tracer
-        start = self._begin(state, dr.width(ray.o))
+        start = self._begin(scene, state, ray)
         megakernel = self.megakernel(tracer)
         if self.traversal == EMBREE:
             queries = EmbreeQueries(scene)
@@ -292,19 +342,24 @@ class LayerBVHPathTracer:
         pi = queries.intersect(ray, active, hint="camera")
         if self.hide_emitters:
             pi = self._skip_area_emitters(queries, ray, pi, active, megakernel)
-        path = PathState(
-            ray=ray, pi=pi, active=active, depth=dr.zeros(mi.UInt32, n), L=dr.zeros(mi.Spectrum, n),
-            beta=dr.full(mi.Spectrum, 1, n), eta=dr.full(mi.Float, 1, n),
-            # As in stock `path`: a path that only sees the environment is a valid sample.
-            valid=dr.full(mi.Bool, (not self.hide_emitters) and scene.environment() is not None, n),
-            prev_si=dr.zeros(mi.SurfaceInteraction3f, n), prev_bsdf_pdf=dr.full(mi.Float, 1, n),
-            prev_bsdf_delta=dr.full(mi.Bool, True, n))
+        path = self._start_path(scene, ray, pi, active)
         sampler, path = loop(
             (sampler, path), cond=lambda sampler, path: path.active,
             body=lambda sampler, path: self._vertex(scene, sampler, state.features, queries, path, megakernel),
             symbolic=megakernel, label="layerbvh path tracer")
         self._finish(state, start, megakernel)
         return dr.select(path.valid, path.L, 0), path.valid, []
+
+    def _start_path(self, scene, ray: mi.Ray3f, pi, active) -> PathState:
+        """The state of paths whose camera rays `ray` found `pi`."""
+        n = dr.width(active)
+        return PathState(
+            ray=ray, pi=pi, active=active, depth=dr.zeros(mi.UInt32, n), L=dr.zeros(mi.Spectrum, n),
+            beta=dr.full(mi.Spectrum, 1, n), eta=dr.full(mi.Float, 1, n),
+            # As in stock `path`: a path that only sees the environment is a valid sample.
+            valid=dr.full(mi.Bool, (not self.hide_emitters) and scene.environment() is not None, n),
+            prev_si=dr.zeros(mi.SurfaceInteraction3f, n), prev_bsdf_pdf=dr.full(mi.Float, 1, n),
+            prev_bsdf_delta=dr.full(mi.Bool, True, n))
 
     def _vertex(self, scene, sampler, use: Features, queries, p: PathState, megakernel: bool):
         """One loop iteration: shade the vertex `p.pi`, then find the next one."""

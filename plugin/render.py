@@ -1,6 +1,7 @@
 """Choosing the variant, loading a scene, reading its path settings, rendering in passes, writing EXR: what the CLI, converge, the tests and the tools share."""
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
@@ -49,11 +50,33 @@ def pass_seed(seed: int, k: int, passes: int) -> int:
     return seed if passes == 1 else seed * 7919 + k
 
 
+@contextlib.contextmanager
+def _exr_threads():
+    """Mitsuba's EXR reader and writer never return when Dr.Jit runs one thread (a process
+    limited to one CPU: `taskset -c 0`, a one-CPU container): they run with two."""
+    import drjit as dr
+    threads = dr.thread_count()
+    if threads < 2:
+        dr.set_thread_count(2)
+    try:
+        yield
+    finally:
+        if threads < 2:
+            dr.set_thread_count(threads)
+
+
 def write_exr(path, img: np.ndarray) -> None:
     """Write a linear float32 image as EXR, whole or not at all (temporary sibling, then rename)."""
     mi = use_variant()
-    with atomic_path(path) as tmp:
+    with _exr_threads(), atomic_path(path) as tmp:
         mi.Bitmap(np.ascontiguousarray(img, dtype=np.float32)).write(tmp)
+
+
+def read_exr(path) -> np.ndarray:
+    """An EXR (or any image Mitsuba reads) as a float32 array, its channels as stored."""
+    mi = use_variant()
+    with _exr_threads():
+        return np.array(mi.Bitmap(str(path)), np.float32)
 
 
 def load_scene(mi, path: str, res=None, **params):
@@ -226,18 +249,12 @@ def timed_render(mi, scene, integrator, spp: int, seed: int, label: str = "", pr
     Dr.Jit compiles a kernel the first time it sees it; a render that meets a new one pays for
     the compile inside its wall time. Dr.Jit's kernel history reports each launch's compile
     time (zero for kernels found in its on-disk cache), so it is reported on its own."""
-    import drjit as dr
+    from .compile_clock import CompileClock
     calibration = getattr(integrator, "calibration_s", lambda: 0.0)
     cal0 = calibration()
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    dr.kernel_history()  # drop what came before
-    try:
+    with CompileClock() as clock:
         img, wall = render_passes(mi, scene, integrator, spp, seed, label, progress)
-        history = dr.kernel_history()
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
-    compile_s = sum(k.get("backend_time", 0.0) + k.get("codegen_time", 0.0)
-                    for k in history if not k.get("cache_hit")) / 1e3  # ms
+    compile_s = clock.seconds
     cal = calibration() - cal0
     return TimedRender(img, wall, max(wall - compile_s - cal, 0.0), compile_s, cal)
 
