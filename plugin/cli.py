@@ -114,11 +114,14 @@ def _check_memory(scene, spp: int, integ) -> None:
     check_memory(int(size[0]), int(size[1]), spp, "megakernel" if integ.megakernel(tracer) else "wavefront", work)
 
 
+def _ours_props(args, props, stats=False, traversal=None) -> dict:
+    """The layerbvh integrator's properties for these options and path settings."""
+    return {"traversal": traversal or args.traversal, "treelet_height": args.treelet_height,
+            "leaf_size": args.leaf_size, "stats": stats, **props}
+
+
 def _ours(mi, args, props, stats=False, traversal=None):
-    d = {"type": "layerbvh", "traversal": traversal or args.traversal, "treelet_height": args.treelet_height,
-         "leaf_size": args.leaf_size, "stats": stats}
-    d.update({k: v for k, v in props.items()})
-    return load_integrator(mi, d)
+    return load_integrator(mi, {"type": "layerbvh", **_ours_props(args, props, stats, traversal)})
 
 
 STATS_SPP = 4  # spp of the separate counted pass (statistics, heat maps: work per ray needs few samples)
@@ -152,6 +155,7 @@ def cmd_render(mi, args) -> int:
 def cmd_compare(mi, args) -> int:
     from .integrator import EMBREE
     from .report import write_report
+    from .verdict import judge
     scene = load_scene(mi, args.scene, args.res)
     spp = args.spp or scene_spp(scene)
     path = path_settings(mi, scene, args.as_path)
@@ -199,7 +203,9 @@ def cmd_compare(mi, args) -> int:
         info["embree_control"] = side(control)
         info["split"] = {"loop_s": control.seconds - st.seconds, "traversal_s": ou.seconds - control.seconds,
                          "ours_over_stock": ou.seconds / st.seconds if st.seconds else None}
-    rep = write_report(args.out, st.image, ou.image, info, heatmaps)
+    # The verdict: same seed, and where same-seed paths diverged, independent seeds.
+    judged = judge(mi, args.scene, st.image, ou.image, spp, props, _ours_props(args, props))
+    rep = write_report(args.out, st.image, ou.image, info, heatmaps, judged)
     m = rep["metrics"]
     ratio = f" ({ou.seconds / st.seconds:.1f}x)" if st.seconds else ""
     split = (f"; our loop with Embree {control.seconds:.2f} s: traversal {ou.seconds - control.seconds:.2f} s, "
@@ -207,8 +213,22 @@ def cmd_compare(mi, args) -> int:
     print(f"stock {st.seconds:.2f} s, layerbvh {ou.seconds:.2f} s{ratio}{split} (not counted: build "
           f"{info['ours']['build_s']:.2f} s, compile {ou.compile_s:.2f} s, calibration {ou.calibration_s:.2f} s); "
           f"rmse {m['rmse']:.3g}, FLIP {m['flip_mean']:.3g}, pixels > 1e-3: {100 * m['frac_pixels_over_1e-3']:.3f}%")
+    print(f"verdict: {judged.label} ({judged.summary()})")
     print(str(Path(args.out).resolve() / "index.html"))
     return 0
+
+
+def disk_full(e: BaseException) -> bool:
+    """Whether `e` (or what caused it) is a write that found no space on the device: Python
+    says ENOSPC, Mitsuba's streams "No space left on device" in a RuntimeError."""
+    import errno
+    seen = set()
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if (isinstance(e, OSError) and e.errno == errno.ENOSPC) or "no space left on device" in str(e).lower():
+            return True
+        e = e.__cause__ or e.__context__
+    return False
 
 
 def main(argv=None) -> int:
@@ -222,6 +242,10 @@ def main(argv=None) -> int:
         print("layerbvh: interrupted; nothing written", file=sys.stderr)
         return 130
     except Exception as e:  # a bug, not bad input: one line, the traceback kept in a file
+        if disk_full(e):  # the user's disk, not our bug (the file was a temporary sibling: name the output)
+            where = getattr(args, "out", None) or getattr(args, "output", None) or "the output"
+            print(f"layerbvh: error: no space left on device writing {where}; nothing written", file=sys.stderr)
+            return 2
         import tempfile
         import traceback
         fd, log = tempfile.mkstemp(prefix="layerbvh-error-", suffix=".txt")

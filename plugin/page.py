@@ -64,6 +64,11 @@ def colour_bar(cmap: str, lo: str, hi: str, label: str) -> str:
             f'to right, {stops})"></div><span>{html.escape(hi)}</span><div class="barlabel">{html.escape(label)}</div></div>')
 
 
+def legend(text: str) -> str:
+    """A caption in the colour bars' place, for a map without a scale."""
+    return f'<div class="bar"><div class="barlabel">{html.escape(text)}</div></div>'
+
+
 STYLE = """
 body{font-family:system-ui,sans-serif;margin:1.2em 2em;color:#222;max-width:1400px}
 h1{font-size:1.4em;margin-bottom:.2em} h2{font-size:1.1em;margin-top:1.6em;border-bottom:1px solid #ddd}
@@ -224,6 +229,32 @@ def _stats_table(tr: dict, stats_pass: dict | None) -> str:
     return "<table><tr><th>statistic</th><th>value</th><th>meaning</th></tr>\n" + _rows(rows) + "</table>\n" + note
 
 
+def _verdict_html(v: dict) -> str:
+    """The two-step verdict (verdict.Verdict.as_dict): its label, what was tested, how long."""
+    esc = html.escape
+    passed = bool(v.get("passed"))
+    label = str(v.get("label", ""))
+    headline = {"same paths": "matches stock: same paths",
+                "agrees within Monte Carlo noise": "matches stock within Monte Carlo noise"}.get(
+        label, f"differs from stock: {label}")
+    z = v.get("statistical")
+    if z:
+        w, h = z.get("resolution", ["?", "?"])
+        tested = (f"Step 1, same seed: {_g(v.get('values', {}).get('frac_within'), 'share')} of pixels within "
+                  f"tolerance, so same-seed paths diverged. Step 2, independent seeds: stock and ours rendered "
+                  f"{z.get('repeats')} times each at {z.get('spp')} spp on a {w}×{h} film, "
+                  f"{z.get('failing_pixels')} of {z.get('pixels')} pixels fail a {esc(str(z.get('test', '')))} "
+                  f"(p below {_g(z.get('threshold'))}; at most {_g(z.get('max_fail_frac'), 'share')} may); "
+                  f"took {_g(z.get('seconds'))} s.")
+    else:
+        tested = f"Step 1, same seed: {esc(str(v.get('summary', '')))}."
+        if label != "same paths":
+            tested += " No independent-seed test was run."
+    return (f'<div class="verdict {"pass" if passed else "fail"}" id="verdict" data-passed="{str(passed).lower()}" '
+            f'data-label="{esc(label)}"><b>{esc(headline)}</b><div class="small">{tested}</div>'
+            f'<div class="small">criterion: {esc(str(v.get("criterion", "")))}</div></div>')
+
+
 def render_page(rep: dict, stock: np.ndarray, ours: np.ndarray, maps: dict, heatmaps: list) -> str:
     """The page for a report dict (as in report.json), its two images (linear RGB), the error
     maps {"diff": (png name, colour bar html), "flip": ...} and heat maps [(title, png, bar)]."""
@@ -231,12 +262,7 @@ def render_page(rep: dict, stock: np.ndarray, ours: np.ndarray, maps: dict, heat
     h, w = stock.shape[:2]
     title = Path(str(rep.get("scene", "scene"))).name
     v = rep.get("verdict", {})
-    passed = bool(v.get("passed"))
-    vals = v.get("values", {})
-    verdict = (f'<div class="verdict {"pass" if passed else "fail"}" id="verdict" data-passed="{str(passed).lower()}">'
-               f'<b>{"matches stock" if passed else "differs from stock"}</b>: {_g(vals.get("frac_within"), "share")} of '
-               f'pixels within tolerance, mean |diff| {_g(vals.get("mean_abs"))} (mean pixel {_g(vals.get("mean_ref"))})'
-               f'<div class="small">criterion: {esc(str(v.get("criterion", "")))}</div></div>')
+    verdict = _verdict_html(v)
     as_path = ""
     if "--as-path" in str(rep.get("compared_as", "")):
         as_path = f'<p class="warn">Compared as path (--as-path): {esc(str(rep.get("compared_as_note", "")))}</p>'

@@ -12,6 +12,7 @@ import numpy as np
 from . import metrics, page
 from .atomic import atomic_folder
 from .render import write_exr
+from .verdict import StatisticalStep, Verdict, same_seed_only
 
 # diff.png shows the largest channel of |ours - stock| per pixel, scaled so that its 99th
 # percentile is the top of the colour map (viridis): the scale adapts to how close the images are,
@@ -78,7 +79,7 @@ def _write_bytes(path: Path, data: bytes) -> None:
 
 
 def _write_all(tmp: Path, stock: np.ndarray, ours: np.ndarray, rep: dict, flip_map: np.ndarray,
-               heatmaps: dict) -> None:
+               heatmaps: dict, statistical: StatisticalStep | None) -> None:
     write_exr(tmp / "stock.exr", stock)
     write_exr(tmp / "ours.exr", ours)
     _write_bytes(tmp / "stock.png", to_png_bytes(metrics.tonemap_srgb(stock)))
@@ -90,6 +91,19 @@ def _write_all(tmp: Path, stock: np.ndarray, ours: np.ndarray, rep: dict, flip_m
                                                            f"largest channel of |ours − stock| (linear radiance); the "
                                                            f"top is its {DIFF_PERCENTILE:g}th percentile")),
             "ꟻLIP": ("flip.png", page.colour_bar("magma", "0", "1", "ꟻLIP error per pixel (0 = identical)"))}
+    if statistical is not None:
+        # The statistical step's film, each of its pixels shown as a block of the image's size.
+        fail = ~statistical.passing
+        h, w = stock.shape[:2]
+        ys = np.minimum(np.arange(h) * fail.shape[0] // h, fail.shape[0] - 1)
+        xs = np.minimum(np.arange(w) * fail.shape[1] // w, fail.shape[1] - 1)
+        big = fail[ys][:, xs]
+        colours = np.where(big[..., None], np.array([0.85, 0.1, 0.1]), 0.25 + 0.5 * metrics.tonemap_srgb(stock))
+        _write_bytes(tmp / "z_fail.png", to_png_bytes(colours))
+        zw, zh = statistical.resolution
+        maps["pixels that differ beyond noise"] = (
+            "z_fail.png", page.legend(f"red: the {statistical.failing_pixels} of {statistical.pixels} pixels of the "
+                                      f"{zw}×{zh} independent-seed test that fail it; grey: the stock image"))
     heat = []
     for name, img in sorted(heatmaps.items(), key=lambda kv: list(HEATMAP_TITLES).index(kv[0])
                             if kv[0] in HEATMAP_TITLES else len(HEATMAP_TITLES)):
@@ -105,17 +119,20 @@ def _write_all(tmp: Path, stock: np.ndarray, ours: np.ndarray, rep: dict, flip_m
 REPORT_MARKER = "report.json"  # the file that makes a folder a compare report
 
 
-def write_report(out_dir, stock_img, ours_img, info: dict, heatmaps: dict | None = None) -> dict:
+def write_report(out_dir, stock_img, ours_img, info: dict, heatmaps: dict | None = None,
+                 judged: Verdict | None = None) -> dict:
     """Write the stock-vs-ours report folder `out_dir` and return the report dict (= report.json).
 
-    Written into a temporary sibling folder that then replaces `out_dir` whole
-    (atomic.atomic_folder): a crash leaves nothing half-written, and the folder's files always
-    come from one run."""
+    `judged` is the two-step verdict (verdict.judge); without it only the same-seed step is
+    taken from the images. Written into a temporary sibling folder that then replaces `out_dir`
+    whole (atomic.atomic_folder): a crash leaves nothing half-written, and the folder's files
+    always come from one run."""
     stock, ours = metrics.as_rgb(stock_img, "stock"), metrics.as_rgb(ours_img, "ours")
     m, flip_map = metrics.compare_images_with_flip_map(stock, ours)
-    rep = _json_safe({**dict(info), "metrics": m, "verdict": metrics.same_seed_verdict(stock, ours)})
+    judged = judged or same_seed_only(stock, ours)
+    rep = _json_safe({**dict(info), "metrics": m, "verdict": judged.as_dict()})
     with atomic_folder(out_dir, REPORT_MARKER) as tmp:
-        _write_all(tmp, stock, ours, rep, flip_map, heatmaps or {})
+        _write_all(tmp, stock, ours, rep, flip_map, heatmaps or {}, judged.statistical)
     return rep
 
 

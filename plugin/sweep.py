@@ -676,4 +676,7 @@ def run_command(args) -> int:
     if res.interrupted:
         print(f"layerbvh: interrupted; {done} of {len(points)} points stored, tables written", file=sys.stderr)
         return 130
+    if bad:  # scripts and CI must notice; the table is written all the same
+        print(f"layerbvh: {bad} of {len(points)} points failed (see {res.out / 'summary.md'})", file=sys.stderr)
+        return 1
     return 0

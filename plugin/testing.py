@@ -126,3 +126,33 @@ def assert_statistically_matches_stock(scene_path, min_pass=0.975, **kw) -> dict
     assert r["pass_fraction"] >= min_pass, \
         f"{scene_path}: only {100 * r['pass_fraction']:.1f}% of pixels pass the Z-test (need {100 * min_pass}%): {r}"
     return r
+
+
+def verdict_vs_stock(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", ours_props=None, ours_modify=None,
+                     **params):
+    """The two-step verdict (plugin/verdict.py, as `layerbvh compare` gives it) of layerbvh
+    against stock `path` on an XML scene: same seed, and where same-seed paths diverged,
+    independent seeds on a downsampled film. `ours_modify(params)` changes ours' copy of the
+    scene (a negative control). Returns verdict.Verdict."""
+    mi = _mi()
+    from .render import path_props
+    from .verdict import judge
+    scene = load(scene_path, res, **params)
+    props = path_props(mi, scene)
+    ours = {"traversal": traversal, **props, **(ours_props or {})}
+    ours_scene = None
+    if ours_modify is not None:
+        ours_scene = load(scene_path, res, **params)
+        p = mi.traverse(ours_scene)
+        ours_modify(p)
+        p.update()
+    a, b = render_pair(scene, spp, seed, traversal, ours_scene=ours_scene, **{**(ours_props or {})})
+    return judge(mi, scene_path, a, b, spp, props, ours, params, ours_modify)
+
+
+def assert_agrees_with_stock(scene_path, **kw):
+    """`verdict_vs_stock` must say "same paths" or "agrees within Monte Carlo noise"."""
+    v = verdict_vs_stock(scene_path, **kw)
+    assert v.passed, f"{scene_path}: {v.label}: {v.summary()}"
+    return v
+

@@ -16,12 +16,12 @@ integrator's settings when they can be read, else path's defaults, and the table
 The scenes run as points of `layerbvh sweep` (sweep.py: Dask, a fresh process per scene, resumable:
 a scene whose content, settings and code are unchanged is not run again unless --rerun).
 
-Result column: `works` (>= 99.9% of pixels within 1e-3 abs in every channel and mean |diff| <=
-1e-4 x mean pixel value), `works (specular tolerance)` (>= 99% within 1e-3), `differs` (with the
-numbers), `refused: ...` (our backend refuses a plugin), `fails in stock Mitsuba: ...`, or
-`error in layerbvh: ...` / `killed: time limit ...` / `crashed ...` when something else goes wrong. Where the
-same-seed result is not `works`, the per-pixel Z-test of `testing.assert_statistically_matches_stock`
-(64 spp, 16x12, 8 seeds each) is run and its pass rate added.
+Result column: the two-step verdict (plugin/verdict.py): `same paths` (same seed: >= 99.9% of
+pixels within 1e-3 abs in every channel and mean |diff| <= 1e-4 x mean pixel value), else an
+independent-seed per-pixel Welch t-test on a downsampled film: `agrees within Monte Carlo noise`
+or `differs beyond noise` (with the numbers); `refused: ...` (our backend refuses a plugin),
+`fails in stock Mitsuba: ...`, or `error in layerbvh: ...` / `killed: time limit ...` /
+`crashed ...` when something else goes wrong.
 """
 from __future__ import annotations
 
@@ -37,7 +37,7 @@ from pathlib import Path
 
 
 from . import atomic
-from .metrics import SAME_SEED_MAX_MEAN_REL, SAME_SEED_MIN_FRAC, SAME_SEED_TOL
+from .metrics import SAME_PATHS
 from .repo import ROOT
 
 # The scenes of the task (PROVENANCE.md of shared/assets), as globs relative to --root.
@@ -55,18 +55,6 @@ DEFAULT_SCENES = (
     "mitsuba/tests/floating_sphere/*.xml",
     "mitsuba/tests/orthographic_sensor/*.xml",
 )
-
-TOL = SAME_SEED_TOL    # per-pixel absolute tolerance (every channel)
-SPECULAR_FRAC = 0.99  # "works (specular tolerance)"
-
-
-def verdict_label(frac_within: float, mean_abs: float, mean_ref: float) -> str:
-    """`works` (metrics.same_seed_verdict's criterion, as in testing.assert_matches_stock),
-    `works (specular tolerance)` or `differs`."""
-    if frac_within >= SAME_SEED_MIN_FRAC and mean_abs <= SAME_SEED_MAX_MEAN_REL * mean_ref:
-        return "works"
-    return "works (specular tolerance)" if frac_within >= SPECULAR_FRAC else "differs"
-
 
 # ------------------------------------------------------------------------------------------------
 # One scene, in its own process (a sweep point: sweep_point.run_third_party).
@@ -240,24 +228,15 @@ def run_worker(args) -> dict:
     ours_img, bad_b = _finite(ours_img, np)
     if bad_a or bad_b:
         rec["notes"].append(f"NaN/Inf pixels set to 0: stock {bad_a}, ours {bad_b}")
-    # Same criterion as testing.same_seed / assert_matches_stock (every channel of the film).
-    d = np.abs(stock_img.astype(np.float64) - ours_img)
-    frac = float(np.mean(d.max(-1) <= TOL))
-    mean_abs, mean_ref = float(d.mean()), float(stock_img.astype(np.float64).mean())
-    rec["same_seed"] = {"frac_within_1e-3": frac, "mean_abs": mean_abs, "mean_ref": mean_ref,
-                        "max_abs": float(d.max()), "channels": int(stock_img.shape[-1])}
+    # The two-step verdict of every A/B comparison (verdict.judge, as compare's report).
+    from layerbvh_mitsuba.verdict import judge
+    judged = judge(mi, scene_path, stock_img, ours_img, args.spp, props, {"traversal": args.traversal, **props})
+    v = judged.same_seed["values"]
+    rec["same_seed"] = {"frac_within_1e-3": v["frac_within"], "mean_abs": v["mean_abs"], "mean_ref": v["mean_ref"],
+                        "max_abs": v["max_abs"], "channels": int(stock_img.shape[-1])}
     rec["metrics"] = compare_images(stock_img, ours_img)
-    rec["result"] = verdict_label(frac, mean_abs, mean_ref)
-    if rec["result"] == "differs":
-        rec["result"] += (f": {100 * frac:.2f}% within 1e-3, mean |diff| {mean_abs:.3g} "
-                          f"(mean pixel {mean_ref:.3g}), max |diff| {float(d.max()):.3g}")
-    if rec["result"] != "works":
-        # Same-seed paths diverge after one different hit (e.g. a tie, see ray_check); whether
-        # the two estimators still agree is a question for the statistical test.
-        from layerbvh_mitsuba.testing import zscore_vs_stock
-        z = zscore_vs_stock(str(scene_path), spp=64, res=(16, 12), repeats=8, traversal=args.traversal)
-        rec["z_test"] = {k: float(z[k]) for k in ("pass_fraction", "min_p", "threshold")}
-        rec["result"] += f"; Z-test over independent seeds: {100 * z['pass_fraction']:.1f}% of pixels pass"
+    rec["verdict"] = judged.as_dict()
+    rec["result"] = judged.label if judged.label == SAME_PATHS else f"{judged.label}: {judged.summary()}"
     return rec
 
 

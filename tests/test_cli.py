@@ -86,3 +86,24 @@ def test_a_scene_without_emitters_renders_black_like_stock(tmp_path, capsys, tra
                  "--no-progress"]) == 0, _err(capsys)
     rep = json.loads((tmp_path / "cmp" / "report.json").read_text())
     assert rep["metrics"]["rmse"] == 0
+
+
+def test_a_full_disk_is_one_line_and_leaves_nothing(tmp_path, capsys):
+    """compare into a filesystem with no room: one line naming the output and the reason, exit 2,
+    no traceback file, nothing left behind (a real 256 KiB tmpfs, as root; CI runs as root)."""
+    import os
+    import subprocess
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(disk)],
+                                           capture_output=True).returncode != 0:
+        pytest.skip("needs root to mount a small tmpfs")
+    try:
+        out = disk / "cmp"
+        rc = main(["compare", str(SCENES / "cbox.xml"), "--spp", "2", "--res", "64", "64", "--traversal", "per_ray",
+                   "--out", str(out), "--no-progress"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 2 and err == [f"layerbvh: error: no space left on device writing {out}; nothing written"], err
+        assert list(disk.iterdir()) == []
+    finally:
+        subprocess.run(["umount", str(disk)], check=True)

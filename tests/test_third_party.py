@@ -8,6 +8,7 @@ from pathlib import Path
 
 import mitsuba as mi
 
+from layerbvh_mitsuba.metrics import SAME_PATHS
 from layerbvh_mitsuba.render import path_props
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,13 +53,13 @@ def test_table_has_a_verdict_per_scene_and_names_refused_plugins(tmp_path):
                           capture_output=True, text=True, timeout=600, cwd=ROOT)
     assert proc.returncode == 0, proc.stderr
     rows = {r["scene"]: r for r in json.loads(js.read_text())["scenes"]}
-    assert rows["cbox.xml"]["result"] == "works", rows["cbox.xml"]
+    assert rows["cbox.xml"]["result"] == SAME_PATHS, rows["cbox.xml"]
     assert rows["cbox.xml"]["same_seed"]["frac_within_1e-3"] >= 0.999
     # The ray check traced real rays, and every disagreement with Embree is a tie (block bottoms on the floor).
     rc = rows["cbox.xml"]["ray_check"]
     assert rc["rays"] == 20000 and rc["other_prim"] == rc["ties"], rc
     # Instances are traced (and their placed triangles checked ray by ray against Embree).
-    assert rows["instanced.xml"]["result"] == "works", rows["instanced.xml"]
+    assert rows["instanced.xml"]["result"] == SAME_PATHS, rows["instanced.xml"]
     assert rows["instanced.xml"]["ray_check"]["other_prim"] == rows["instanced.xml"]["ray_check"]["ties"]
     refused = rows["curve.xml"]["result"]
     assert refused.startswith("refused:") and "'linearcurve'" in refused and "hair" in refused
@@ -67,6 +68,6 @@ def test_table_has_a_verdict_per_scene_and_names_refused_plugins(tmp_path):
     assert not list(tmp_path.glob(".*.tmp*")), "temporary files left behind"
     # Each scene was a point of the sweep (its own process), with its row in the sweep's table too.
     sweep_rows = {r["scene"]: r for r in json.loads((tmp_path / "sweep" / "results.json").read_text())["rows"]}
-    assert sweep_rows["cbox.xml"]["result"] == sweep_rows["instanced.xml"]["result"] == "works"
+    assert sweep_rows["cbox.xml"]["result"] == sweep_rows["instanced.xml"]["result"] == SAME_PATHS
     assert sweep_rows["curve.xml"]["result"] == refused
     assert all(r["host"] and r["status"] == "ok" for r in sweep_rows.values())
