@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from .metrics import SAME_SEED_MAX_MEAN_REL, SAME_SEED_MIN_FRAC, SAME_SEED_TOL, same_seed_verdict
+from .verdict import load_modified
 
 
 @dataclass
@@ -108,12 +109,7 @@ def zscore_vs_stock(scene_path, spp=64, res=(8, 8), repeats=8, traversal="per_ra
     props = path_props(mi, scene)
     stock = mi.load_dict({"type": "path", **props})
     ref_mean, ref_var = repeated_moments(scene, stock, spp, repeats, seed0=1000)
-    ours_scene = scene
-    if modify is not None:
-        ours_scene = load(scene_path, res, **params)
-        p = mi.traverse(ours_scene)
-        modify(p)
-        p.update()
+    ours_scene = scene if modify is None else load_modified(mi, scene_path, res, params, modify)
     ours = mi.load_dict({"type": "layerbvh", "traversal": traversal, **props, **(ours_props or {})})
     mean, var = repeated_moments(ours_scene, ours, spp, repeats, seed0=5000)
     # Variance of a repeat's mean; zscore_test divides by the repeat count.
@@ -140,13 +136,8 @@ def verdict_vs_stock(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ra
     scene = load(scene_path, res, **params)
     props = path_props(mi, scene)
     ours = {"traversal": traversal, **props, **(ours_props or {})}
-    ours_scene = None
-    if ours_modify is not None:
-        ours_scene = load(scene_path, res, **params)
-        p = mi.traverse(ours_scene)
-        ours_modify(p)
-        p.update()
-    a, b = render_pair(scene, spp, seed, traversal, ours_scene=ours_scene, **{**(ours_props or {})})
+    ours_scene = None if ours_modify is None else load_modified(mi, scene_path, res, params, ours_modify)
+    a, b = render_pair(scene, spp, seed, traversal, ours_scene=ours_scene, **(ours_props or {}))
     return judge(mi, scene_path, a, b, spp, props, ours, params, ours_modify)
 
 

@@ -80,6 +80,17 @@ def same_seed_only(stock: np.ndarray, ours: np.ndarray) -> Verdict:
     return Verdict(metrics.verdict_label(s["passed"], None), s)
 
 
+def load_modified(mi, scene_path, res, params: dict | None, modify):
+    """A fresh copy of the scene at film `res` with `modify(mi.traverse(copy))` applied: what a
+    negative control renders on ours' side."""
+    from .render import load_scene
+    scene = load_scene(mi, str(scene_path), res, **(params or {}))
+    p = mi.traverse(scene)
+    modify(p)
+    p.update()
+    return scene
+
+
 def repeated_moments(mi, scene, integrator, spp: int, repeats: int, seed0: int):
     """Per-pixel mean and variance (of one repeat's mean) over `repeats` independent renders."""
     from .render import render_passes
@@ -98,12 +109,7 @@ def statistical_step(mi, scene_path, size: tuple[int, int], samples: int, stock_
     res = metrics.z_test_film(*size)
     spp = metrics.z_test_spp(*size, samples)
     scene = load_scene(mi, str(scene_path), res, **(params or {}))
-    ours_scene = scene
-    if ours_modify is not None:
-        ours_scene = load_scene(mi, str(scene_path), res, **(params or {}))
-        p = mi.traverse(ours_scene)
-        ours_modify(p)
-        p.update()
+    ours_scene = scene if ours_modify is None else load_modified(mi, scene_path, res, params, ours_modify)
     stock = load_integrator(mi, {"type": "path", **stock_props})
     ours = load_integrator(mi, {"type": "layerbvh", **ours_props})
     r = metrics.Z_REPEATS

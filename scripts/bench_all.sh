@@ -23,5 +23,8 @@ $LAYERBVH sweep scenes/paper_mix.xml --job converge --budget 40 --res 128 128 --
     --configs stock,embree,per_ray,layer_sorted:8,auto --rerun --out out/sweep_converge $SWEEP_ARGS
 rm -rf docs/converge/paper_mix
 cp -r out/sweep_converge/converge/paper_mix docs/converge/paper_mix
+# auto against per_ray on whole renders of multi-shape scenes at their own depth, fresh processes
+# (PERFORMANCE.md entry 25).
+$PY scripts/bench_auto.py --rounds 3 --json docs/bench/auto_render.json
 $PY scripts/report.py --bench docs/bench/bench_meshes.json --bench docs/bench/bench.json \
     --scaling docs/bench/scaling.json --converge docs/converge/paper_mix --readme
