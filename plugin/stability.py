@@ -12,9 +12,11 @@ ray where one side hits and the other misses, or where the two hit different tri
 different distances; rays that hit two triangles at the same distance (shared edges, coplanar
 faces: either answer is right) are ties and counted apart (`embree.disagreements`).
 
-Image level. Our `layerbvh` integrator against stock `path` on the scenes in scenes/stability/:
-same seed (pixels differing by more than 1e-3 x max(1, |stock|) from Embree in default and robust
-mode), the per-pixel Z-test over independent seeds of the A/B tests, and NaN/Inf pixels.
+Image level. Our `layerbvh` integrator in layer_sorted (treelets of LAYER_HEIGHT levels, so that
+the wavefront path runs) against stock `path` on the scenes in scenes/stability/: same seed
+(pixels differing by more than 1e-3 x max(1, |stock|) from Embree in default and robust mode),
+NaN/Inf pixels, and a negative control: the same rule must fail on stock with one material's
+albedo x 1.02 (see image_case).
 """
 from __future__ import annotations
 
@@ -31,7 +33,11 @@ from layerbvh import MISS
 from .repo import SCENES
 STIFF = SCENES / "stability"
 RAYS = 40_000          # rays per ray-level case at scale 1
-REAL_RATE = 1e-4       # allowed rate of real disagreements with Embree (or 2x Embree's own)
+# Allowed rate of rays on which we are wrong by the exact float64 check. Measured: 0 rays in every
+# case at scale 1 and 5; with the double-precision edge refinement switched off, 3 (slivers), 288
+# (edges and vertices) and 2,315 (grazing) at scale 1. (Until this was written the rule also let us
+# be as wrong as robust Embree, 12 / 473 / 3,231 rays there, which hid that.)
+REAL_RATE = 1e-4
 
 
 @dataclass
@@ -127,9 +133,8 @@ def against_embree(name: str, v, f, o, d, tmax=None, extra: dict | None = None, 
                    **build) -> CaseResult:
     """The standard ray-level verdict. Where ours and Embree (default or robust) disagree, an exact
     float64 test of the triangles each side names decides who is wrong (`embree.wrong_answers`).
-    Pass: the modes agree bit for bit, no NaN/Inf hit, and we are wrong on at most
-    max(REAL_RATE x rays, the number robust Embree is wrong on) rays. `extra` adds
-    {label: (value, must_be_zero)} figures."""
+    Pass: the modes agree bit for bit, no NaN/Inf hit, and we are wrong on at most REAL_RATE x
+    rays. `extra` adds {label: (value, must_be_zero)} figures."""
     from . import embree
     v32 = np.asarray(v, np.float32)
     o, d = np.asarray(o, np.float32), np.asarray(d, np.float32)
@@ -140,13 +145,13 @@ def against_embree(name: str, v, f, o, d, tmax=None, extra: dict | None = None, 
     rays = np.unique(np.concatenate([dis[False]["real_idx"], dis[True]["real_idx"], own["real_idx"]]))
     wrong = embree.wrong_answers(v32, f, o, d, {"ours": h.prim, "default": ref[False], "robust": ref[True]}, rays)
     n = len(o)
-    allowed = max(int(REAL_RATE * n), wrong["robust"])
+    allowed = int(REAL_RATE * n)
     bad = nonfinite_hits(h)
     extra = extra or {}
     hard = {k: val for k, (val, zero) in extra.items() if zero}
     passed = mode_diff == 0 and bad == 0 and wrong["ours"] <= allowed and all(val == 0 for val in hard.values())
     crit = (f"modes identical ({mode_diff} rays differ), NaN/Inf {bad}, wrong by exact check {wrong['ours']} <= "
-            f"{allowed} (max of {REAL_RATE:g} x rays and robust Embree's {wrong['robust']})")
+            f"{allowed} ({REAL_RATE:g} x rays; Embree default / robust: {wrong['default']} / {wrong['robust']})")
     if hard:
         crit += "; " + ", ".join(f"{k} {val} = 0" for k, val in hard.items())
     soft = [f"{k} {val}" for k, (val, zero) in extra.items() if not zero]
@@ -684,38 +689,78 @@ def bad_data(scale):
 # -- image level -------------------------------------------------------------------------------------
 
 
-def image_case(name: str, scene: str, scale: float, spp: int = 16, z_spp: int = 64, **params) -> CaseResult:
-    """Stock `path` (Embree default and robust) against `layerbvh` on scenes/stability/SCENE.xml:
-    same-seed pixel disagreements, the Z-test over independent seeds, and NaN/Inf pixels."""
+# Image cases build treelets of 2 levels: at the default height 8 four of the five scenes are one
+# treelet, where layer_sorted cannot differ from per_ray (at 2: 3-6 treelets, infinite_mirrors
+# 14,602; measured 1.3-3.3 wavefront steps per query). Each case checks that the wavefront path ran.
+LAYER_HEIGHT = 2
+CONTROL_FACTOR = 1.02  # the negative control: one material's albedo x 1.02
+GREY = "grey.reflectance.value"  # box.xml's walls, floor and ceiling
+
+
+def over_tolerance(ref: np.ndarray, img: np.ndarray) -> int:
+    """Pixels of `img` differing from `ref` by more than 1e-3 x max(1, |ref|) in some channel."""
+    tol = 1e-3 * np.maximum(1.0, np.abs(ref).max(-1))
+    return int((np.abs(img - ref).max(-1) > tol).sum())
+
+
+def layer_path_ran(st: dict) -> tuple[bool, float]:
+    """Whether a layer_sorted render's last_stats show the layer path: the wavefront loop, only
+    layer_sorted queries, several treelets and more than one wavefront step per query (per_ray, or
+    one treelet, takes at most one); and the steps per query."""
+    per_query = st["wavefront_steps"] / max(1, st["queries"])
+    ok = (st["loop"] == "wavefront" and set(st["modes_used"]) == {"layer_sorted"}
+          and st["bvh"].get("treelets", 0) > 1 and per_query > 1)
+    return ok, per_query
+
+
+def image_case(name: str, scene: str, scale: float, spp: int = 16, control: str = GREY, **params) -> CaseResult:
+    """Stock `path` (Embree default and robust) against `layerbvh` in layer_sorted (treelet height
+    LAYER_HEIGHT) on scenes/stability/SCENE.xml, same seed: pixels differing by more than 1e-3 x
+    max(1, |stock|), NaN/Inf pixels, and whether the wavefront path ran.
+
+    Negative control: the same rule, stock against stock with `control` (a material's albedo, or
+    the light's radiance where no albedo is seen) x CONTROL_FACTOR, must fail: the rule can see a
+    2% change on this scene at this size (measured at scale 1: 3.1% of the pixels over at max_depth 1,
+    where only the light's own pixels change, 14% at max_depth 2, 81-100% on the others).
+    (Until this was written the verdict also held a per-pixel Z-test over independent seeds, 8x8
+    pixels, 64 spp, 8 seeds, which passed with a 5% albedo change. Sized to see 2% on these scenes
+    (36 pixels, 2048 spp and more) its layer_sorted side took 6-22 s a case: the same-seed rule is
+    the stronger check for the price; the Z-tests with shown power are in tests/test_mitsuba_backend.py
+    and tests/test_instancing.py.)"""
     mi = _mi()
-    from . import testing
     from .render import path_props
     res = max(8, int(round(16 * math.sqrt(scale))))
     path = STIFF / f"{scene}.xml"
-    imgs, nonfinite = {}, 0
+    imgs = {}
     for robust in (False, True):
         sc = mi.load_file(str(path), resx=res, resy=res, robust=robust, **params)
         props = path_props(mi, sc)
         stock = mi.load_dict({"type": "path", **props})
         imgs[robust] = np.array(mi.render(sc, integrator=stock, spp=spp, seed=3), np.float64)
         if not robust:
-            ours_int = mi.load_dict({"type": "layerbvh", "traversal": "layer_sorted", **props})
+            ours_int = mi.load_dict({"type": "layerbvh", "traversal": "layer_sorted", "treelet_height": LAYER_HEIGHT,
+                                     **props})
             ours = np.array(mi.render(sc, integrator=ours_int, spp=spp, seed=3), np.float64)
-            bounces = ours_int.last_stats.get("bounces", 0)
-    nonfinite += int((~np.isfinite(ours)).any(-1).sum())
-    tol = 1e-3 * np.maximum(1.0, np.abs(imgs[False]).max(-1))
-    over = {r: int((np.abs(ours - img).max(-1) > tol).sum()) for r, img in imgs.items()}
-    z = testing.zscore_vs_stock(path, spp=z_spp, res=(max(8, res // 2),) * 2, repeats=8, traversal="layer_sorted",
-                                robust=False, **params)
+            st = dict(ours_int.last_stats)
+            scene_params = mi.traverse(sc)
+            scene_params[control] = scene_params[control] * CONTROL_FACTOR
+            scene_params.update()
+            changed = np.array(mi.render(sc, integrator=stock, spp=spp, seed=3), np.float64)
+    nonfinite = int((~np.isfinite(ours)).any(-1).sum())
+    over = {r: over_tolerance(img, ours) for r, img in imgs.items()}
     pixels = res * res
     frac = 1 - over[False] / pixels
-    passed = nonfinite == 0 and z["pass_fraction"] >= 0.975 and frac >= 0.99
-    crit = (f"NaN/Inf pixels {nonfinite} = 0; Z-test {100 * z['pass_fraction']:.1f}% of pixels pass >= 97.5%; "
-            f"same seed {100 * frac:.2f}% of pixels within 1e-3 x max(1, |stock|) >= 99%")
+    control_frac = 1 - over_tolerance(imgs[False], changed) / pixels
+    layer_ok, per_query = layer_path_ran(st)
+    passed = nonfinite == 0 and frac >= 0.99 and layer_ok and control_frac < 0.99
+    crit = (f"NaN/Inf pixels {nonfinite} = 0; same seed {100 * frac:.2f}% of pixels within 1e-3 x max(1, |stock|) "
+            f">= 99%; wavefront steps per query {per_query:.2f} > 1 ({st['bvh'].get('treelets', 0)} treelets); "
+            f"control ({control} x {CONTROL_FACTOR:g}): {100 * control_frac:.2f}% within < 99%")
     return CaseResult(name, "image", pixels, over[False], over[True], nonfinite, passed, crit,
-                      f"{res}x{res}, {spp} spp same seed; Z-test {z_spp} spp x 8 seeds; up to {bounces} bounces; "
-                      f"mean pixel {imgs[False].mean():.3g}",
-                      {"z_pass": z["pass_fraction"], "same_seed_frac": frac, "bounces": bounces})
+                      f"{res}x{res}, {spp} spp same seed, layer_sorted at treelet height {LAYER_HEIGHT}; up to "
+                      f"{st['bounces']} bounces; mean pixel {imgs[False].mean():.3g}",
+                      {"same_seed_frac": frac, "control_frac": control_frac, "steps_per_query": per_query,
+                       "treelets": st["bvh"].get("treelets", 0), "bounces": st["bounces"]})
 
 
 @case("tiny_bright_emitter", "image", "a 1e-4 area emitter of radiance 1e6 (the only light) over a diffuse block")
@@ -739,8 +784,10 @@ case("facing_mirrors", "image", "two facing perfect mirrors 1.98 apart with a di
     lambda scale: image_case("facing_mirrors", "facing_mirrors", scale))
 
 case("infinite_mirrors", "image", "Mitsuba's infinite_mirrors test scene: three chrome sphere meshes under an environment map")(
-    lambda scale: image_case("infinite_mirrors", "infinite_mirrors", scale))
+    lambda scale: image_case("infinite_mirrors", "infinite_mirrors", scale, control="chrome.specular_reflectance.value"))
 
 for _depth in (1, 2, 64):
     case(f"max_depth_{_depth}", "image", f"the glass block scene (int_ior 1.5) with max_depth {_depth}")(
-        lambda scale, _depth=_depth: image_case(f"max_depth_{_depth}", "dielectric", scale, max_depth=str(_depth)))
+        lambda scale, _depth=_depth: image_case(f"max_depth_{_depth}", "dielectric", scale, max_depth=str(_depth),
+                                                # at max_depth 1 only emitters are seen: the light's radiance
+                                                **({"control": "ceiling_light.emitter.radiance.value"} if _depth == 1 else {})))
