@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import resource
 import signal
 import subprocess
@@ -22,6 +23,7 @@ from typing import Callable
 
 import numpy as np
 
+from .render import SPP_PER_PASS
 from .repo import SCENES
 
 TIMEOUT_S = 300  # bound on any one command; a case that needs it has failed
@@ -181,10 +183,21 @@ def ctrl_c(tmp: Path) -> Outcome:
     stopped_in = time.monotonic() - t0
     lines = [ln for ln in (seen + err).replace("\r", "\n").splitlines() if ln.startswith("layerbvh:") and "%|" not in ln]
     done = [ln for ln in (seen + err).replace("\r", "\n").splitlines() if "spp" in ln]
+    # "Within one pass", counted in samples rather than seconds: the progress bar may have gone at
+    # most one pass (64 spp) beyond what it showed when SIGINT was sent.
+    at_signal, at_end = progress_spp(seen), progress_spp(seen + err)
+    one_pass = at_signal is not None and at_end is not None and at_end <= at_signal + SPP_PER_PASS
     ok = p.returncode == 130 and lines == ["layerbvh: interrupted; nothing written"] and not out.exists() \
-        and not leftovers(tmp)
-    return Outcome("ctrl_c", ok, f"exit {p.returncode} {stopped_in:.1f} s after SIGINT: {lines}; last progress "
+        and not leftovers(tmp) and one_pass
+    return Outcome("ctrl_c", ok, f"exit {p.returncode} {stopped_in:.1f} s after SIGINT: {lines}; progress {at_signal} "
+                                 f"spp at SIGINT, {at_end} at the end (one pass: {SPP_PER_PASS}); last progress "
                                  f"{done[-1].strip() if done else '-'}; output left: {out.exists() or leftovers(tmp)}")
+
+
+def progress_spp(text: str) -> int | None:
+    """The largest sample count a tqdm progress bar ("  5%|...| 128/2560 [...]") printed in `text`."""
+    counts = [int(m.group(1)) for m in re.finditer(r"\|\s*(\d+)/(\d+)\s*\[", text)]
+    return max(counts) if counts else None
 
 
 @case("spectral_variant", "compare in llvm_ad_spectral (and ask for scalar_rgb)",

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import matplotlib.image as mpimg
@@ -71,8 +72,11 @@ def test_bench_on_recorded_rays(bench_json):
         if r["mode"] != "embree":
             assert r["prim_mismatch_vs_per_ray"] == 0, (r["mode"], r["treelet_height"], r["rays"])
             assert r["bvh_bytes"] > 0 and r["work_bytes"] > 0 and r["time_split_s"]["total"] > 0
-        else:  # Embree may pick the other triangle of a shared edge, rarely
-            assert r["prim_mismatch_vs_per_ray"] <= 0.01 * r["ray_count"]
+        else:
+            # Embree may pick the other triangle of a shared edge, rarely: the engine tests allow
+            # 1e-4 of the rays (tests/test_engine_hits.py), here at least one ray. Measured: 0 of
+            # ~15,000 rays over six recordings (seeds 0-5) of these kinds.
+            assert r["prim_mismatch_vs_per_ray"] <= max(1, math.ceil(1e-4 * r["ray_count"])), r
     by_mode = {(r["rays"], r["mode"], r["treelet_height"]) for r in rows}
     assert ("shadow", "layer_sorted", 5) in by_mode and ("camera", "per_ray", 2) in by_mode
 

@@ -79,3 +79,23 @@ def test_active_mask_makes_misses_and_leaves_the_rest_alone(procedural, mode):
     assert np.array_equal(occ.occluded, active & (ref.prim != layerbvh.MISS))
     with pytest.raises(ValueError, match=r"active has 3 entries, origins has 5000"):
         bvh.trace(o, d, mode=mode, active=np.ones(3, bool))
+
+
+def test_auto_runs_the_mode_it_reports(procedural):
+    """auto's reported mode is the one that ran, told apart by what only the traversal itself
+    shows: per_ray is one kernel over every ray (steps 1, all rays active in it), layer_sorted
+    takes the same steps as layer_sorted traced directly (several at treelet height 3)."""
+    v, f = procedural
+    o, d = meshes.incoherent_rays(v, 20_000, seed=6)
+    bvh = layerbvh.build(v, f, treelet_height=3, backend="llvm")
+    sorted_steps = bvh.trace(o, d, mode="layer_sorted").stats.steps
+    assert sorted_steps > 2
+    small = bvh.trace(o, d, mode="auto", hint="bounce")  # below the CPU rule's 2^19 rays: per_ray, untimed
+    assert small.stats.mode == "auto:per_ray"
+    assert small.stats.steps == 1 and small.stats.active_per_step == [20_000], small.stats.active_per_step
+    # A decision kept from an earlier run (as the integrator loads them): layer_sorted for this kind.
+    (key,) = bvh.auto_choices  # the kind just decided
+    bvh.auto.choices.clear()
+    bvh.auto.load({key: {"mode": "layer_sorted", "reason": "timed in an earlier run"}})
+    kept = bvh.trace(o, d, mode="auto", hint="bounce")
+    assert kept.stats.mode == "auto:layer_sorted" and kept.stats.steps == sorted_steps

@@ -98,10 +98,15 @@ def test_check_layout_catches_corruption(bunny):
 
 
 def test_build_rate_is_reported(procedural):
+    """Build and layout times are reported apart from loading the builder's kernels, which
+    happens once per process: the first build here may load them (it is the first in the process
+    when this file runs alone: 5.9 s on a cold numba cache), a second build must not."""
     v, f = procedural
-    s = layerbvh.build(v, f).stats
-    assert s.build_s > 0 and s.layout_s > 0
-    assert s.kernel_load_s == 0.0, "the builder's kernels load once per process, not per build"
+    first = layerbvh.build(v, f).stats
+    again = layerbvh.build(v, f).stats
+    for s in (first, again):
+        assert s.build_s > 0 and s.layout_s > 0 and s.kernel_load_s >= 0
+    assert again.kernel_load_s == 0.0, "the builder's kernels load once per process, not per build"
 
 
 def test_compiled_records_match_numpy(bunny):
@@ -160,7 +165,13 @@ def test_step_statistics(bunny):
     assert st.inner_nodes >= 5000
     assert st.triangles >= int(np.sum(h.prim != layerbvh.MISS))
     assert st.leaves <= st.inner_nodes + 5000
-    assert st.time_leaf_s + st.time_treelet_s == pytest.approx(st.time_traverse_s)
+    # The kernel's per-ray step counter against the host's count of active rays per step: each
+    # ray active in a step (the per-ray tail included) runs that step's kernel once, so a ray
+    # dropped from the wavefront or counted twice shows here. More than one step per ray.
+    assert st.ray_steps == sum(a) > 5000
+    assert h.work["steps"].min() >= 1 and h.work["steps"].max() == st.steps
+    # (time_treelet_s is time_traverse_s minus the estimated time_leaf_s: their sum is not checked,
+    # it holds by construction.)
     assert st.work_bytes >= 5000 * bvh.stats.depth * 8, "entry stacks are part of the work memory"
 
 

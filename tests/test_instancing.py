@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import layerbvh_mitsuba  # noqa: F401  (registers the integrator)
-from layerbvh_mitsuba import testing
+from layerbvh_mitsuba import adapter, testing
 from layerbvh_mitsuba.adapter import MAX_PER_SHAPE_TESTS, SceneTracer, UnsupportedShapeError
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
@@ -33,10 +33,25 @@ def test_instanced_scene_matches_stock(name, traversal, tmp_path):
     assert r.mean_ref > 0.01, "the scene should not render black"
 
 
+# The Z-test's configuration, shared with its negative control below: 36 pixels (one failing fails
+# the 97.5% rule), 512 spp, 8 seeds a side.
+Z_TEST = {"spp": 512, "res": (6, 6), "repeats": 8}
+
+
 def test_instanced_bunnies_pass_the_z_test_at_full_depth():
-    r = testing.assert_statistically_matches_stock(SCENES / "instanced_bunnies.xml", spp=512, res=(6, 6), repeats=8,
-                                                   traversal="per_ray")
+    r = testing.assert_statistically_matches_stock(SCENES / "instanced_bunnies.xml", traversal="per_ray", **Z_TEST)
     assert r["pixels"] == 36
+
+
+def test_instanced_bunnies_z_test_catches_a_2_percent_albedo_change():
+    """Negative control of the Z-test above: it must fail when one material's albedo (the grey of
+    the floor, ceiling, back and front walls) changes by 2%. Measured: 83% of the pixels pass,
+    smallest p-value 1.6e-12 against the threshold 2.8e-4 (at -2%: 75%, 1.3e-8); the test above:
+    every pixel passes, smallest p-value 5.7e-3."""
+    def brighter_grey(params):
+        params["grey.reflectance.value"] = params["grey.reflectance.value"] * 1.02
+    r = testing.zscore_vs_stock(SCENES / "instanced_bunnies.xml", traversal="per_ray", modify=brighter_grey, **Z_TEST)
+    assert r["pass_fraction"] < 0.975, r
 
 
 def _camera_rays(origin, lo, hi, n, seed):
@@ -101,12 +116,25 @@ def test_memory_grows_with_unique_geometry():
     assert st.total_bytes < 1.2 * 64 * 2 * st.triangles, "nodes + triangles: about those of the unique geometry"
 
 
-def test_nested_instancing_does_not_load_in_mitsuba():
+def test_nested_instancing_is_refused_by_name(monkeypatch):
     """Mitsuba 3.9 refuses a shapegroup holding an instance at load time, so no scene we are
-    given can hold one (the adapter still refuses it by name, should a later Mitsuba allow it)."""
+    given can hold one; our own refusal (adapter.collect_geometry), there should a later Mitsuba
+    allow it, is exercised by showing the adapter a shapegroup whose children include an
+    instance (and one that includes a shapegroup)."""
     with pytest.raises(RuntimeError, match="Nested instancing is not permitted"):
         mi.load_string("""<scene version="3.0.0"><shape type="shapegroup" id="a"><shape type="sphere"/></shape>
             <shape type="shapegroup" id="b"><shape type="instance"><ref id="a"/></shape></shape></scene>""")
+    scene = mi.load_dict(_box_with({"grp": {"type": "shapegroup", "ball": {"type": "sphere", "radius": 0.1}},
+                                    "inst": {"type": "instance", "shapegroup": {"type": "ref", "id": "grp"}}}))
+    SceneTracer(scene, "per_ray")  # as loaded: one level of instancing, traced
+    inst = next(sh for sh in scene.shapes() if sh.class_name() == "Instance")
+    group = next(obj for _, obj in adapter._children(scene) if adapter._is_shapegroup(obj))
+    real = adapter._children
+    for nested, what in ((inst, r"Instance 'inst'"), (group, r"ShapeGroup\w* 'grp'")):
+        monkeypatch.setattr(adapter, "_children", lambda obj, nested=nested: real(obj) + [("nested", nested)]
+                            if adapter._is_shapegroup(obj) else real(obj))
+        with pytest.raises(UnsupportedShapeError, match=rf"{what} in shapegroup 'grp': nested instancing is not supported"):
+            SceneTracer(scene, "per_ray")
 
 
 def _ellipsoids(n: int) -> mi.TensorXf:
