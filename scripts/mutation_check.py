@@ -1,0 +1,267 @@
+"""Mutation check: does the test suite catch realistic bugs?
+
+Copies the repository (tracked and untracked, not ignored files, as they are in the working
+tree) to a temporary folder, then for each mutation in MUTATIONS, one at a time: replaces one
+piece of text in one file of the copy (it must occur exactly once there, else the mutation is
+"not applicable": the code moved on and the table must follow), runs the tests that should catch
+it (pytest -x, in the copy: PYTHONPATH points `layerbvh` and `layerbvh_mitsuba` at the copied
+packages, ahead of the editable install of the original checkout), prints one line, and puts
+the file back. First the union of all listed tests runs on the unmutated copy (the baseline): a
+test that fails there would "catch" anything.
+
+Exit status 0 when every mutation is caught; 1 when one is missed, not applicable or its run
+broke (a collection error or a timeout is not a catch); 2 when the baseline fails or the copy
+does not import its own packages.
+
+    bash scripts/mutation_check.sh [--only NAME,...] [--list] [--no-baseline] [--keep]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+
+@dataclass(frozen=True)
+class Mutation:
+    name: str
+    what: str         # the bug, in words
+    path: str         # the file it is made in, relative to the repository root
+    old: str          # text that occurs exactly once in that file ...
+    new: str          # ... and what replaces it
+    tests: tuple      # pytest node ids that should catch it (run with -x, in this order)
+
+
+MB = "tests/test_mitsuba_backend.py::"
+SAME_SEED_LAYER = (MB + "test_same_seed_matches_stock[cbox-layer_sorted]",
+                   MB + "test_same_seed_matches_stock[empty_box-layer_unsorted]")
+
+# name, what, file, old -> new, the tests that should catch it.
+MUTATIONS = (
+    Mutation("pending_rays_dropped", "layer steps drop the rays still pending after the second step",
+             "layerbvh/wavefront.py",
+             "    while n_active > 0:\n",
+             "    while n_active > 0 and stats.steps < 2:\n",
+             SAME_SEED_LAYER + ("tests/test_engine_hits.py::test_modes_agree_exactly[camera-bunny]",)),
+    Mutation("first_exit_only", "exits beyond the first are ignored (the paper's bug): a step's other pushed exits "
+             "are not written back",
+             "layerbvh/wavefront.py",
+             "mask = m.UInt32(k) < nl\n",
+             "mask = (m.UInt32(k) < nl) & ((lk & 0x40000000) == 0)  # EXIT_BIT\n",
+             SAME_SEED_LAYER + ("tests/test_engine_exact.py::test_one_exit_rule_is_wrong_often_on_a_real_mesh",)),
+    Mutation("tie_rule_flipped", "ties in t go to the larger primitive id",
+             "layerbvh/walk.py",
+             "    return prim < prim_best\n",
+             "    return prim > prim_best\n",
+             ("tests/test_engine_layout.py::test_degenerate_meshes_build_and_trace[duplicated]",
+              "tests/test_stability.py::test_case[coplanar_overlap]")),
+    Mutation("tie_culled", "a stack entry at exactly the closest hit's distance is culled (no rounding margin)",
+             "layerbvh/walk.py",
+             "(e_t <= t_best * FAR_SCALE)",
+             "(e_t < t_best)",
+             ("tests/test_engine_layout.py::test_degenerate_meshes_build_and_trace[duplicated]",
+              "tests/test_stability.py::test_case[coplanar_overlap]")),
+    Mutation("layer_path_skips_shadow_rays", "the integrator's layer path (wavefront loop) ignores its shadow rays",
+             "plugin/integrator.py",
+             "~queries.occluded(",
+             "(not megakernel) | ~queries.occluded(",
+             SAME_SEED_LAYER),
+    Mutation("batch_boundary_off_by_one", "each ray batch ends one ray early (the last ray of a batch is never traced)",
+             "layerbvh/bvh.py",
+             "min(n, start + self.batch_rays))",
+             "min(n, start + self.batch_rays - 1))",
+             ("tests/test_engine_batches.py::test_batches_change_nothing_but_memory[layer_sorted]",
+              "tests/test_large_pass.py::test_a_real_size_render_matches_stock")),
+    Mutation("auto_reports_per_ray_runs_sorted", "auto decides as before but runs layer_sorted and reports per_ray",
+             "layerbvh/bvh.py",
+             "chosen = mode = ",
+             'chosen, mode = "per_ray", "layer_sorted"; _decided = ',
+             ("tests/test_engine_batches.py::test_auto_runs_the_mode_it_reports",)),
+    Mutation("finished_rays_not_sorted_last", "the sort key of a finished ray is its last treelet, not 'after every "
+             "treelet' (the next step keeps finished rays and loses active ones)",
+             "layerbvh/wavefront.py",
+             "keys = dr.select(done, m.UInt32(finished), out.treelet)",
+             "keys = m.UInt32(out.treelet)",
+             (MB + "test_same_seed_matches_stock[cbox-layer_sorted]",
+              "tests/test_engine_hits.py::test_modes_agree_exactly[incoherent-bunny]")),
+    Mutation("tail_step_not_counted", "the per-ray tail is not counted as a step in the statistics",
+             "layerbvh/wavefront.py",
+             "            stats.tail_rays = n_active\n            stats.steps += 1\n",
+             "            stats.tail_rays = n_active\n",
+             ("tests/test_engine_layout.py::test_step_statistics",)),
+    Mutation("layer_modes_fall_back_to_per_ray", "the integrator's closest-hit queries run per_ray whatever the "
+             "traversal (same hits, so the same image: only the statistics can tell)",
+             "plugin/adapter.py",
+             "self.bvh.trace(ray.o, ray.d, ray.maxt, mode=self.traversal,",
+             'self.bvh.trace(ray.o, ray.d, ray.maxt, mode="per_ray" if self.traversal.startswith("layer") '
+             'else self.traversal,',
+             SAME_SEED_LAYER),
+    Mutation("stability_on_one_treelet", "the stability suite's image cases run at the default treelet height "
+             "(one treelet: layer_sorted cannot differ from per_ray)",
+             "plugin/stability.py",
+             "LAYER_HEIGHT = 2\n",
+             "LAYER_HEIGHT = 8\n",
+             ("tests/test_stability.py::test_case[dielectric_ior_1.5]",)),
+    Mutation("mis_weight_swapped", "the power heuristic weighs by the other strategy's pdf",
+             "plugin/integrator.py",
+             "w = a2 / (a2 + b2)",
+             "w = b2 / (a2 + b2)",
+             (MB + "test_same_seed_matches_stock[cbox-per_ray]",)),
+    Mutation("z_test_without_repeats", "the Z-test takes a render's variance for the variance of the mean of the "
+             "repeats (too wide: it loses its power)",
+             "plugin/metrics.py",
+             "va.astype(np.float64) / na, vb.astype(np.float64) / nb",
+             "va.astype(np.float64), vb.astype(np.float64)",
+             (MB + "test_z_test_catches_a_2_percent_albedo_change",)),
+    Mutation("edge_refinement_off", "the double-precision recomputation of unsure edge functions never runs "
+             "(error bound 0)",
+             "layerbvh/geometry.py",
+             "EDGE_ERR = 16 * 2.0 ** -24\n",
+             "EDGE_ERR = 0.0\n",
+             ("tests/test_stability.py::test_case[watertight_edges_vertices]",
+              "tests/test_stability.py::test_case[grazing_rays]",
+              "tests/test_stability.py::test_case[sliver_triangles]")),
+)
+
+
+def copy_repository(src: Path, dst: Path) -> int:
+    """Tracked and untracked (not ignored) files of `src` as they are in the working tree, with
+    their times (numba's cache checks them); numba's compiled kernels (ignored __pycache__
+    files) too, so the copy does not recompile the builder. Returns the number of files."""
+    out = subprocess.run(["git", "-C", str(src), "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
+                         capture_output=True, check=True).stdout.decode()
+    names = [n for n in out.split("\0") if n]
+    copied = 0
+    for name in names:
+        s = src / name
+        if s.is_file() and not s.is_symlink():  # a tracked file deleted in the working tree is left out
+            (dst / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(s, dst / name)
+            copied += 1
+    for cache in src.glob("layerbvh/__pycache__/*.nb[ic]"):
+        (dst / cache.relative_to(src)).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(cache, dst / cache.relative_to(src))
+    return copied
+
+
+def import_path(copy: Path) -> Path:
+    """A folder holding `layerbvh` and `layerbvh_mitsuba` (the copy's plugin/) as symlinks: the
+    packages' names, pointing at the copied sources."""
+    imp = copy / ".mutation_imports"
+    imp.mkdir()
+    (imp / "layerbvh").symlink_to(copy / "layerbvh", target_is_directory=True)
+    (imp / "layerbvh_mitsuba").symlink_to(copy / "plugin", target_is_directory=True)
+    return imp
+
+
+def run_tests(python: str, copy: Path, env: dict, tests, timeout: float) -> tuple[int | None, str]:
+    """pytest -x on `tests` in the copy: (exit status or None on timeout, output)."""
+    cmd = [python, "-m", "pytest", "-x", "-q", "-n", "0", "-p", "no:cacheprovider", "-p", "no:randomly",
+           "--no-header", "-rf", *tests]
+    try:
+        p = subprocess.run(cmd, cwd=copy, env=env, capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired as e:
+        return None, (e.stdout or b"").decode(errors="replace") if isinstance(e.stdout, bytes) else (e.stdout or "")
+    return p.returncode, p.stdout + p.stderr
+
+
+def first_failure(output: str, width: int = 90) -> str:
+    """The first failed test of pytest's -rf summary, with the start of its message."""
+    m = re.search(r"^FAILED (\S+)(?: - (.*))?$", output, re.M)
+    if not m:
+        return "?"
+    why = (m.group(2) or "").strip()
+    return m.group(1) + (f": {why[:width]}{'...' if len(why) > width else ''}" if why else "")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--repo", type=Path, default=Path(__file__).resolve().parents[1], help="the checkout to copy")
+    ap.add_argument("--python", default=None, help="the interpreter (default: REPO/.venv/bin/python)")
+    ap.add_argument("--only", default="", help="comma-separated mutation names")
+    ap.add_argument("--list", action="store_true", help="print the mutations and exit")
+    ap.add_argument("--no-baseline", action="store_true", help="skip the unmutated run of the listed tests")
+    ap.add_argument("--keep", action="store_true", help="keep the temporary copy")
+    ap.add_argument("--timeout", type=float, default=600, help="seconds per pytest run")
+    args = ap.parse_args(argv)
+    chosen = [m for m in MUTATIONS if not args.only or m.name in args.only.split(",")]
+    unknown = set(filter(None, args.only.split(","))) - {m.name for m in MUTATIONS}
+    if unknown:
+        print(f"mutation_check: unknown mutation(s): {', '.join(sorted(unknown))}", file=sys.stderr)
+        return 2
+    if args.list:
+        for m in chosen:
+            print(f"{m.name}: {m.what}\n    {m.path}: {m.old.strip()!r} -> {m.new.strip()!r}\n    tests: "
+                  + " ".join(m.tests))
+        return 0
+    repo = args.repo.resolve()
+    python = args.python or str(repo / ".venv" / "bin" / "python")
+    t_start = time.perf_counter()
+    tmp = Path(tempfile.mkdtemp(prefix="layerbvh-mutation-"))
+    try:
+        copy = tmp / "repo"
+        n = copy_repository(repo, copy)
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(import_path(copy)),
+                                                                          os.environ.get("PYTHONPATH")])),
+               "PYTHONDONTWRITEBYTECODE": "1", "COLUMNS": "250"}  # COLUMNS: pytest's summary lines whole
+        probe = subprocess.run([python, "-c", "import layerbvh, layerbvh_mitsuba, os; "
+                                "print(os.path.realpath(layerbvh.__file__)); print(os.path.realpath(layerbvh_mitsuba.__file__))"],
+                               cwd=copy, env=env, capture_output=True, text=True)
+        where = probe.stdout.split()
+        if probe.returncode != 0 or len(where) != 2 or not all(w.startswith(str(copy.resolve())) for w in where):
+            print(f"mutation_check: the copy does not import its own packages: {where or probe.stderr.strip()}",
+                  file=sys.stderr)
+            return 2
+        print(f"mutation_check: {n} files copied to {copy}; {len(chosen)} mutation(s)", flush=True)
+        if not args.no_baseline:
+            tests = list(dict.fromkeys(t for m in chosen for t in m.tests))
+            rc, out = run_tests(python, copy, env, tests, args.timeout * 2)
+            if rc != 0:
+                print(f"mutation_check: the unmutated copy fails its tests (exit {rc}): {first_failure(out)}\n"
+                      + out[-3000:], file=sys.stderr)
+                return 2
+            print(f"baseline: {len(tests)} tests pass unmutated", flush=True)
+        bad = 0
+        for m in chosen:
+            target = copy / m.path
+            text = target.read_text()
+            found = text.count(m.old)
+            if found != 1:
+                print(f"{m.name:34s} not applicable: its text occurs {found} times in {m.path} (update the table)",
+                      flush=True)
+                bad += 1
+                continue
+            t0 = time.perf_counter()
+            target.write_text(text.replace(m.old, m.new))
+            try:
+                rc, out = run_tests(python, copy, env, m.tests, args.timeout)
+            finally:
+                target.write_text(text)
+            dt = time.perf_counter() - t0
+            if rc == 1:
+                print(f"{m.name:34s} caught   by {first_failure(out)} ({dt:.0f} s)", flush=True)
+            else:
+                bad += 1
+                why = "MISSED" if rc == 0 else ("ERROR    (timeout)" if rc is None else f"ERROR    (pytest exit {rc})")
+                print(f"{m.name:34s} {why}: {m.what} ({dt:.0f} s)", flush=True)
+                if rc not in (0, None):
+                    print(out[-2000:], flush=True)
+        print(f"mutation_check: {len(chosen) - bad} of {len(chosen)} caught in {time.perf_counter() - t_start:.0f} s",
+              flush=True)
+        return 1 if bad else 0
+    finally:
+        if args.keep:
+            print(f"mutation_check: copy kept in {tmp}")
+        else:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
