@@ -246,16 +246,17 @@ AGREES = "agrees within Monte Carlo noise"
 DIFFERS = "differs beyond noise"
 SAME_SEED_DIFFERS = "differs (same seed; no independent-seed test run)"
 Z_ALPHA = 0.01        # family-wise false-alarm rate over the film (Šidák-corrected per pixel)
-Z_REPEATS = 16        # independent renders per side: each pixel's mean and variance (t with ~30 dof)
 Z_MAX_SIDE = 32       # the test's film: the scene's aspect, its longer side at most this many pixels
-Z_MIN_SPP, Z_MAX_SPP = 4, 1024  # spp of one repeat
+# Samples per pixel of the test's one render per side (each pixel's mean and per-sample variance).
+Z_MIN_SPP = 64
+Z_MAX_SAMPLES = 1 << 20  # camera samples per side at most: one traced batch (batch_rays' default)
 # Camera samples per side against one of the compare's renders: the compare renders stock, the
-# embree control, ours and a counted pass; the test renders stock and ours at half as many
-# samples each, so it takes well under the compare's own time.
+# embree control, ours and a counted pass; the test renders stock and ours once each at half as
+# many samples, so it takes well under the compare's own time.
 Z_SAMPLE_SHARE = 0.5
 # Pixels allowed to fail: path-traced pixel means are heavy-tailed (fireflies) at finite spp, so
 # a t-test's tails are a little too light for them; a real difference fails many pixels at once
-# (tests/test_verdict.py: a dropped shape, another albedo or max_depth fail 10-100% of them).
+# (tests/test_verdict.py: a dropped shape, another albedo or max_depth).
 Z_MAX_FAIL_FRAC = 0.01
 
 
@@ -266,10 +267,11 @@ def z_test_film(width: int, height: int) -> tuple[int, int]:
 
 
 def z_test_spp(width: int, height: int, samples: int) -> int:
-    """spp per repeat so that one side of the test traces about Z_SAMPLE_SHARE x `samples`
-    camera samples (`samples`: one render of the compare)."""
+    """Samples per pixel of the test's film so that one side traces about Z_SAMPLE_SHARE x
+    `samples` camera samples (`samples`: one render of the compare), within Z_MIN_SPP and
+    Z_MAX_SAMPLES."""
     zw, zh = z_test_film(width, height)
-    return int(min(Z_MAX_SPP, max(Z_MIN_SPP, round(Z_SAMPLE_SHARE * samples / (zw * zh * Z_REPEATS)))))
+    return int(max(Z_MIN_SPP, min(Z_MAX_SAMPLES // (zw * zh), round(Z_SAMPLE_SHARE * samples / (zw * zh)))))
 
 
 def z_test_passed(pass_fraction: float) -> bool:

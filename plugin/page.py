@@ -242,7 +242,7 @@ def _verdict_html(v: dict) -> str:
         w, h = z.get("resolution", ["?", "?"])
         tested = (f"Step 1, same seed: {_g(v.get('values', {}).get('frac_within'), 'share')} of pixels within "
                   f"tolerance, so same-seed paths diverged. Step 2, independent seeds: stock and ours rendered "
-                  f"{z.get('repeats')} times each at {z.get('spp')} spp on a {w}×{h} film, "
+                  f"once each at {z.get('spp')} spp on a {w}×{h} film, "
                   f"{z.get('failing_pixels')} of {z.get('pixels')} pixels fail a {esc(str(z.get('test', '')))} "
                   f"(p below {_g(z.get('threshold'))}; at most {_g(z.get('max_fail_frac'), 'share')} may); "
                   f"took {_g(z.get('seconds'))} s.")

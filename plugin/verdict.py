@@ -8,9 +8,8 @@ import numpy as np
 
 from . import metrics
 
-# Seeds of the statistical step's repeats, apart for the two sides (stock's repeat k and ours'
-# never share a seed; render.pass_seed keeps multi-pass repeats apart too, within 32 bits).
-STOCK_SEED0, OURS_SEED0 = 1000, 5000
+# Seeds of the statistical step's two renders: apart, so stock's and ours' samples are independent.
+STOCK_SEED, OURS_SEED = 1000, 5000
 
 
 @dataclass
@@ -18,8 +17,7 @@ class StatisticalStep:
     """What step 2 ran and found."""
 
     resolution: tuple[int, int]  # its film (W, H)
-    spp: int                     # per repeat
-    repeats: int                 # per side
+    spp: int                     # samples per pixel, one render per side
     pass_fraction: float
     pixels: int
     min_p: float
@@ -32,11 +30,11 @@ class StatisticalStep:
         return int(self.pixels - round(self.pass_fraction * self.pixels))
 
     def as_dict(self) -> dict:
-        return {"resolution": list(self.resolution), "spp": self.spp, "repeats": self.repeats,
-                "pass_fraction": self.pass_fraction, "failing_pixels": self.failing_pixels, "pixels": self.pixels,
-                "min_p": self.min_p, "threshold": self.threshold, "alpha": metrics.Z_ALPHA,
-                "max_fail_frac": metrics.Z_MAX_FAIL_FRAC, "seconds": self.seconds,
-                "test": "per-pixel Welch t-test of equal means, Šidák-corrected over the pixels"}
+        return {"resolution": list(self.resolution), "spp": self.spp, "pass_fraction": self.pass_fraction,
+                "failing_pixels": self.failing_pixels, "pixels": self.pixels, "min_p": self.min_p,
+                "threshold": self.threshold, "alpha": metrics.Z_ALPHA, "max_fail_frac": metrics.Z_MAX_FAIL_FRAC,
+                "seconds": self.seconds,
+                "test": "per-pixel Welch t-test of equal means (per-sample variances), Šidák-corrected over the pixels"}
 
 
 @dataclass
@@ -62,7 +60,7 @@ class Verdict:
             return diverged
         w, h = z.resolution
         return (f"{diverged}; independent seeds: {z.failing_pixels} of {z.pixels} pixels differ beyond noise "
-                f"({w}x{h}, {z.repeats} x {z.spp} spp per side, {z.seconds:.1f} s)")
+                f"({w}x{h}, {z.spp} spp per side, {z.seconds:.1f} s)")
 
     def as_dict(self) -> dict:
         v = self.same_seed
@@ -91,19 +89,35 @@ def load_modified(mi, scene_path, res, params: dict | None, modify):
     return scene
 
 
-def repeated_moments(mi, scene, integrator, spp: int, repeats: int, seed0: int):
-    """Per-pixel mean and variance (of one repeat's mean) over `repeats` independent renders."""
-    from .render import render_passes
-    imgs = np.stack([render_passes(mi, scene, integrator, spp, seed0 + k, "", False)[0].astype(np.float64)
-                     for k in range(repeats)])
-    return imgs.mean(0), imgs.var(0, ddof=1)
+def pixel_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel mean and per-sample variance of `integrator`'s estimate over `spp` samples per
+    pixel, from one call of its `sample` on all of them: camera rays through uniform positions
+    in each pixel (a box filter) from the scene's first sensor, with an independent sampler
+    seeded `seed`. One render instead of repeated ones: the variance comes from the samples, and
+    the layer modes' per-render kernel launches are paid once, not once per repeat. Both sides
+    go through this same estimator, so it compares the integrators, not two films."""
+    import drjit as dr
+    sensor = scene.sensors()[0]
+    w, h = (int(x) for x in sensor.film().crop_size())
+    n = w * h * spp
+    sampler = mi.load_dict({"type": "independent"})
+    sampler.seed(seed, n)
+    pixel = dr.arange(mi.UInt32, n) // spp
+    pos = mi.Vector2f(mi.Float(pixel % w), mi.Float(pixel // w)) + sampler.next_2d()
+    ray, weight = sensor.sample_ray(0.0, sampler.next_1d(), pos / mi.Vector2f(w, h), sampler.next_2d())
+    L, _, _ = integrator.sample(scene, sampler, ray, None, True)
+    value = weight * L
+    dr.eval(value)
+    v = np.stack([np.asarray(value[c], np.float64) for c in range(3)], -1).reshape(h, w, spp, 3)
+    return v.mean(2), v.var(2, ddof=1)
 
 
 def statistical_step(mi, scene_path, size: tuple[int, int], samples: int, stock_props: dict, ours_props: dict,
                      params: dict | None = None, ours_modify=None) -> StatisticalStep:
     """Step 2: stock `path` and layerbvh at independent seeds on the scene's film shrunk to
-    metrics.z_test_film(size), about `samples` camera samples per side, then metrics.pixel_test
-    (Welch). `ours_modify(params)` changes ours' copy of the scene (negative controls)."""
+    metrics.z_test_film(size), about Z_SAMPLE_SHARE x `samples` camera samples per side
+    (`pixel_moments`), then metrics.pixel_test (Welch). `ours_modify(params)` changes ours'
+    copy of the scene (negative controls)."""
     from .render import load_integrator, load_scene
     t0 = time.perf_counter()
     res = metrics.z_test_film(*size)
@@ -112,12 +126,11 @@ def statistical_step(mi, scene_path, size: tuple[int, int], samples: int, stock_
     ours_scene = scene if ours_modify is None else load_modified(mi, scene_path, res, params, ours_modify)
     stock = load_integrator(mi, {"type": "path", **stock_props})
     ours = load_integrator(mi, {"type": "layerbvh", **ours_props})
-    r = metrics.Z_REPEATS
-    ref_mean, ref_var = repeated_moments(mi, scene, stock, spp, r, STOCK_SEED0)
-    mean, var = repeated_moments(mi, ours_scene, ours, spp, r, OURS_SEED0)
-    summary, passing = metrics.pixel_test(ref_mean, ref_var, mean, var, r, r, alpha=metrics.Z_ALPHA, student=True)
-    return StatisticalStep(resolution=res, spp=spp, repeats=r, pass_fraction=summary["pass_fraction"],
-                           pixels=summary["pixels"], min_p=summary["min_p"], threshold=summary["threshold"],
+    ref_mean, ref_var = pixel_moments(mi, scene, stock, spp, STOCK_SEED)
+    mean, var = pixel_moments(mi, ours_scene, ours, spp, OURS_SEED)
+    summary, passing = metrics.pixel_test(ref_mean, ref_var, mean, var, spp, spp, alpha=metrics.Z_ALPHA, student=True)
+    return StatisticalStep(resolution=res, spp=spp, pass_fraction=summary["pass_fraction"], pixels=summary["pixels"],
+                           min_p=summary["min_p"], threshold=summary["threshold"],
                            seconds=time.perf_counter() - t0, passing=passing)
 
 

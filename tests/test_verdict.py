@@ -12,9 +12,9 @@ from layerbvh_mitsuba import metrics, testing
 from layerbvh_mitsuba.cli import main
 
 STAIRCASE = Path(__file__).resolve().parents[1] / "scenes" / "staircase2" / "scene.xml"  # 21 shapes, max_depth 65
-# Measured at this size (statistical step: 32x18 film, 16 x 25 spp per side): equal estimators
-# fail 0 of 576 pixels; wall albedo x1.1 fails 20, the dropped mesh 515, max_depth 3 366 (the
-# verdict allows 1%, 5 pixels).
+# Measured at this size (statistical step: 32x18 film, 392 spp per side): equal estimators fail
+# 0 of 576 pixels (11 of 11 runs over three scenes at other seeds); the wall's albedo x1.1 fails
+# 12-20 (just above the 5 allowed), x1.25 227, the dropped mesh 499, max_depth 3 256.
 SIZE = dict(spp=16, res=(224, 126))
 
 
@@ -24,8 +24,9 @@ def test_student_p_values_and_the_rules():
     assert p == pytest.approx([0.073388, 0.049996, 1.0], rel=1e-4)
     assert metrics.z_test_film(320, 180) == (32, 18) and metrics.z_test_film(16, 16) == (16, 16)
     # About the compare's samples per side, within the per-repeat bounds.
-    assert metrics.z_test_spp(320, 180, 320 * 180 * 16) == round(100 * metrics.Z_SAMPLE_SHARE)
+    assert metrics.z_test_spp(320, 180, 320 * 180 * 16) == round(1600 * metrics.Z_SAMPLE_SHARE)
     assert metrics.z_test_spp(32, 32, 10) == metrics.Z_MIN_SPP
+    assert metrics.z_test_spp(320, 180, 10 ** 9) * 576 <= metrics.Z_MAX_SAMPLES
     assert metrics.verdict_label(True, None) == metrics.SAME_PATHS
     assert metrics.verdict_label(False, 1.0) == metrics.AGREES
     assert metrics.verdict_label(False, 0.9) == metrics.DIFFERS
@@ -38,12 +39,12 @@ def test_diverged_paths_of_a_full_depth_scene_agree():
     v = testing.verdict_vs_stock(STAIRCASE, traversal="auto", **SIZE)
     assert not v.same_seed["passed"], f"same seed passed ({v.summary()}): this control no longer reaches step 2"
     assert v.label == metrics.AGREES, v.summary()
-    assert v.statistical.resolution == (32, 18) and v.statistical.repeats == metrics.Z_REPEATS
+    assert v.statistical.resolution == (32, 18) and v.statistical.spp >= metrics.Z_MIN_SPP
 
 
 def _wall_albedo(params):
     key = "Wall.brdf_0.reflectance.value"
-    params[key] = params[key] * 1.1
+    params[key] = params[key] * 1.2
 
 
 def _drop_second_largest_mesh(params):
