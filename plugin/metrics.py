@@ -248,7 +248,7 @@ SAME_SEED_DIFFERS = "differs (same seed; no independent-seed test run)"
 Z_ALPHA = 0.01        # family-wise false-alarm rate over the film (Šidák-corrected per pixel)
 Z_MAX_SIDE = 32       # the test's film: the scene's aspect, its longer side at most this many pixels
 # Samples per pixel of the test's one render per side (each pixel's mean and per-sample variance).
-Z_MIN_SPP = 64
+Z_MIN_SPP = 16  # (Welch with ~30 degrees of freedom at the least; the compare's own budget first)
 Z_MAX_SAMPLES = 1 << 20  # camera samples per side at most: one traced batch (batch_rays' default)
 # Camera samples per side against one of the compare's renders: the compare renders stock, the
 # embree control, ours and a counted pass; the test renders stock and ours once each at half as
