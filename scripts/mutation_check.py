@@ -13,7 +13,7 @@ Exit status 0 when every mutation is caught; 1 when one is missed, not applicabl
 broke (a collection error or a timeout is not a catch); 2 when the baseline fails or the copy
 does not import its own packages.
 
-    bash scripts/mutation_check.sh [--only NAME,...] [--list] [--no-baseline] [--keep]
+    bash scripts/mutation_check.sh [--only NAME,...] [--list] [--dry-run] [--no-baseline] [--keep]
 """
 from __future__ import annotations
 
@@ -187,6 +187,8 @@ def main(argv=None) -> int:
     ap.add_argument("--python", default=None, help="the interpreter (default: REPO/.venv/bin/python)")
     ap.add_argument("--only", default="", help="comma-separated mutation names")
     ap.add_argument("--list", action="store_true", help="print the mutations and exit")
+    ap.add_argument("--dry-run", action="store_true",
+                    help="only check that each mutation's text occurs exactly once in the checkout (no copy, no tests)")
     ap.add_argument("--no-baseline", action="store_true", help="skip the unmutated run of the listed tests")
     ap.add_argument("--keep", action="store_true", help="keep the temporary copy")
     ap.add_argument("--timeout", type=float, default=600, help="seconds per pytest run")
@@ -202,6 +204,13 @@ def main(argv=None) -> int:
                   + " ".join(m.tests))
         return 0
     repo = args.repo.resolve()
+    if args.dry_run:
+        bad = 0
+        for m in chosen:
+            found = (repo / m.path).read_text().count(m.old)
+            bad += found != 1
+            print(f"{m.name:34s} {'applicable' if found == 1 else f'not applicable: its text occurs {found} times in {m.path}'}")
+        return 1 if bad else 0
     python = args.python or str(repo / ".venv" / "bin" / "python")
     t_start = time.perf_counter()
     tmp = Path(tempfile.mkdtemp(prefix="layerbvh-mutation-"))
