@@ -49,8 +49,13 @@ def test_per_ray_everywhere_renders_the_per_ray_megakernel(staircase, monkeypatc
     integ = _auto(scene, margin=0.99, monkeypatch=monkeypatch)  # sorting would need to be 100x faster
     img = _render(scene, integ)
     st = integ.last_stats
-    bounce = st["auto_choices"][layerbvh.auto.choice_key(False, "bounce", RES[0] * RES[1] * SPP)]
+    n = RES[0] * RES[1] * SPP
+    bounce = st["auto_choices"][layerbvh.auto.choice_key(False, "bounce", n)]
     assert bounce["mode"] == "per_ray" and bounce["seconds"], bounce  # timed, by the pre-pass
+    # Each kind is decided apart: camera and shadow rays by the CPU rule, untimed.
+    for any_hit, hint in ((False, "camera"), (True, "shadow")):
+        c = st["auto_choices"][layerbvh.auto.choice_key(any_hit, hint, n)]
+        assert c["seconds"] is None and "sorting never won" in c["reason"], c
     assert st["loop"] == "megakernel", st["loop"]
     assert st["calibration_s"] > 0
     # The same kernel and samples; the scene's tent filter splats samples with atomic adds,

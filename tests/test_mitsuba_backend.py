@@ -117,15 +117,6 @@ def test_hide_emitters_matches_stock(name):
     assert np.mean(d <= 1e-3) >= 0.999, f"max |diff| {d.max()}"
 
 
-def test_auto_decides_bounce_rays_apart_from_camera_rays():
-    """auto keys its decision by the kind of batch: bounce rays must not reuse the camera rays'."""
-    scene = testing.load(SCENES / "cbox.xml", (256, 256), max_depth=3)  # 65,536 rays: auto calibrates
-    integ = mi.load_dict({"type": "layerbvh", "traversal": "auto", "max_depth": 3})
-    mi.render(scene, integrator=integ, spp=1, seed=0)
-    kinds = {key.split("/")[1] for key in integ.last_stats["auto_choices"]}
-    assert {"camera", "bounce", "shadow"} <= kinds, integ.last_stats["auto_choices"]
-
-
 def test_registered_for_every_variant_set_later():
     """No variant is set by importing the package; the integrator follows variant changes."""
     import subprocess
