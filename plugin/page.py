@@ -247,7 +247,7 @@ def _verdict_html(v: dict) -> str:
                   f"(p below {_g(z.get('threshold'))}; at most {_g(z.get('max_fail_frac'), 'share')} may); "
                   f"took {_g(z.get('seconds'))} s.")
     else:
-        tested = f"Step 1, same seed: {esc(str(v.get('summary', '')))}."
+        tested = f"Step 1, {esc(str(v.get('summary', '')))}."
         if label != "same paths":
             tested += " No independent-seed test was run."
     return (f'<div class="verdict {"pass" if passed else "fail"}" id="verdict" data-passed="{str(passed).lower()}" '
