@@ -310,6 +310,7 @@ class LayerBVHPathTracer:
                                               if k != "treelet_node_counts"},
             "rays": sum(s.rays for s in steps),
             "wavefront_steps": sum(s.steps for s in steps),
+            "ray_steps": sum(s.ray_steps for s in steps),  # each ray's steps, summed (with stats only)
             "inner_nodes": sum(s.inner_nodes for s in steps),
             "leaves": sum(s.leaves for s in steps),
             "triangles": sum(s.triangles for s in steps),

@@ -83,7 +83,8 @@ def load_scene(mi, path: str, res=None, **params):
     """Load an XML scene (with optional $parameters); `res` overrides the film of its first
     sensor, whether or not the scene declares resolution parameters."""
     try:
-        scene = mi.load_file(str(path), **params)
+        with _exr_threads():  # an EXR texture or environment map is read while loading
+            scene = mi.load_file(str(path), **params)
     except Exception as e:  # Mitsuba raises RuntimeError with a multi-line message
         raise UserError(f"cannot load scene {path}: {str(e).strip().splitlines()[-1]}") from None
     if not scene.sensors():

@@ -73,3 +73,28 @@ def test_page_in_a_browser(browser, page):
     assert verdict.text.startswith("matches stock" if passed else "differs from stock")
     if os.environ.get("LAYERBVH_UPDATE_DOCS"):  # the README's screenshot (scripts/ docs refresh)
         browser.save_screenshot(str(ROOT / "docs" / "report_page.png"))
+
+
+def test_flip_draws_the_other_image(browser, tmp_path):
+    """A flip must redraw the canvas from the other image, not only change its label: with ours
+    visibly brighter than stock (x1.5, below white), every drawn pixel must get brighter on the
+    flip to ours and come back on the flip to stock."""
+    import numpy as np
+
+    from layerbvh_mitsuba.report import write_report
+    h, w = 24, 32
+    stock = np.dstack([np.tile(np.linspace(0.05, 0.5, w, dtype=np.float32), (h, 1))] * 3)
+    out = tmp_path / "rep"
+    write_report(out, stock, stock * 1.5, {"scene": "synthetic.xml", "spp": 1, "resolution": [w, h]})
+    browser.get((out / "index.html").as_uri())
+    drawn = (lambda: np.array(browser.execute_script(
+        "const c = document.getElementById('view'); return Array.from(c.getContext('2d')"
+        ".getImageData(0, 0, c.width, c.height).data)")).reshape(-1, 4)[:, :3])
+    view = browser.find_element("id", "view")
+    first = drawn()
+    view.click()
+    assert view.get_attribute("data-showing") == "ours"
+    flipped = drawn()
+    assert (flipped > first).mean() > 0.99, "the flip to ours drew the brighter image"
+    view.click()
+    assert np.array_equal(drawn(), first), "and back to stock"
