@@ -245,9 +245,8 @@ class LayerBVHPathTracer:
         t0 = time.perf_counter()
         with CompileClock() as clock:
             idx = dr.arange(mi.UInt32, k)
-            take = (lambda x: x if dr.width(x) == 1 else dr.gather(type(x), x, idx))
-            cam = mi.Ray3f(take(ray.o), take(ray.d))
-            cam.maxt = take(ray.maxt)
+            take = (lambda x: x if dr.width(x) <= 1 else dr.gather(type(x), x, idx))
+            cam = mi.Ray3f(take(ray.o), take(ray.d), take(ray.maxt), take(ray.time), take(ray.wavelengths))
             sampler = mi.load_dict({"type": "independent"})
             sampler.seed(self.PREPASS_SEED, k)
             active = dr.full(mi.Bool, True, k)
@@ -284,9 +283,10 @@ class LayerBVHPathTracer:
     # once per render (JIT variants trace all of a pass's samples at once), so it brackets it.
 
     def _begin(self, scene, state: SceneState, ray: mi.Ray3f) -> dict:
-        start = {"t0": time.perf_counter(), "calibration_s": self.calibration_s()}
+        start = {"calibration_s": self.calibration_s()}
         if self.traversal == layerbvh.AUTO:
             self._auto_per_ray = self._plan_auto(scene, state, ray)
+        start["t0"] = time.perf_counter()  # the render's own time starts after the pre-pass
         if state.tracer is not None:
             state.tracer.reset_counters()  # (the pre-pass's queries are not the render's)
         self._vertices = 0
