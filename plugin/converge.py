@@ -133,10 +133,19 @@ def reference_key(scene: Path, settings: dict) -> str:
 
 
 def reference(mi, scene, scene_path: Path, settings: dict, cache: Path, progress: bool) -> tuple[np.ndarray, dict]:
-    """The stock reference image: read from the cache when its key and the EXR's SHA-256 match,
-    else rendered and stored (a damaged or replaced cache file is rendered again, with a notice)."""
+    """The stock reference image at settings["ref_spp"] (`cached_stock`)."""
+    return cached_stock(mi, scene, scene_path, settings, settings["ref_spp"], REFERENCE_SEED, cache,
+                        "reference (stock)", progress)
+
+
+def cached_stock(mi, scene, scene_path: Path, settings: dict, spp: int, seed: int, cache: Path, label: str,
+                 progress: bool) -> tuple[np.ndarray, dict]:
+    """A stock `path` render (settings["integrator"], `spp`, `seed`): read from the cache when
+    its key (`reference_key`: every file of the scene, `settings`, spp and seed) and the EXR's
+    SHA-256 match, else rendered and stored (a damaged or replaced cache file is rendered again,
+    with a notice)."""
     from .render import read_exr, render_passes, write_exr
-    key = reference_key(scene_path, settings)
+    key = reference_key(scene_path, {**settings, "spp": spp, "seed": seed})
     exr, meta = cache / f"{key[:24]}.exr", cache / f"{key[:24]}.json"
     if exr.is_file() and meta.is_file():
         try:
@@ -149,13 +158,13 @@ def reference(mi, scene, scene_path: Path, settings: dict, cache: Path, progress
             problem = "does not match its checksum" if info.get("key") == key else "belongs to other settings"
         except (OSError, ValueError, RuntimeError) as e:
             problem = f"cannot be read ({str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__})"
-        print(f"converge: cached reference {exr} {problem}; rendering it again", file=sys.stderr)
+        print(f"layerbvh: cached stock render {exr} {problem}; rendering it again", file=sys.stderr)
     stock = load_integrator(mi, {"type": "path", **settings["integrator"]})
-    img, secs = render_passes(mi, scene, stock, settings["ref_spp"], REFERENCE_SEED, "reference (stock)", progress)
+    img, secs = render_passes(mi, scene, stock, spp, seed, label, progress)
     if not np.isfinite(img).all():
-        raise ConvergeError("the stock reference has NaN/Inf pixels; nothing cached")
+        raise ConvergeError("the stock render has NaN/Inf pixels; nothing cached")
     write_exr(exr, img)
-    info = {"key": key, "settings": settings, "render_s": secs, "scene": str(scene_path),
+    info = {"key": key, "settings": settings, "spp": spp, "seed": seed, "render_s": secs, "scene": str(scene_path),
             "exr_sha256": hashlib.sha256(exr.read_bytes()).hexdigest()}
     atomic.write_text(meta, json.dumps(info, indent=1))  # written last: its presence means the EXR is whole
     return img, {**info, "path": str(exr), "cached": False}

@@ -98,3 +98,27 @@ def test_flip_draws_the_other_image(browser, tmp_path):
     assert (flipped > first).mean() > 0.99, "the flip to ours drew the brighter image"
     view.click()
     assert np.array_equal(drawn(), first), "and back to stock"
+
+
+def test_summary_page_of_the_pytest_plugin(browser, tmp_path):
+    """The pytest plugin's summary (DIR/index.html) in a browser: a row per check, the failing
+    one linked to its compare page, whose thumbnail decodes."""
+    import numpy as np
+
+    from layerbvh_mitsuba.pytest_plugin import summary_html
+    from layerbvh_mitsuba.report import write_report
+    stock = np.full((16, 16, 3), 0.3, np.float32)
+    write_report(tmp_path / "t_fail", stock, stock * 1.5, {"scene": "s.xml", "spp": 1, "resolution": [16, 16]})
+    base = {"scene": "s.xml", "traversal": "auto", "stock_s": 0.1, "stock_cached": False, "ours_s": 0.2}
+    records = [{**base, "test": "t.py::test_ok", "label": "same paths", "passed": True, "summary": "same seed",
+                "page": None},
+               {**base, "test": "t.py::test_fail", "label": "differs beyond noise", "passed": False,
+                "summary": "16 of 1024 pixels differ", "page": "t_fail/index.html"}]
+    (tmp_path / "index.html").write_text(summary_html(records))
+    browser.get((tmp_path / "index.html").as_uri())
+    rows = browser.execute_script("return Array.from(document.querySelectorAll('#checks tr')).slice(1)"
+                                  ".map(r => [r.className, r.cells[0].textContent])")
+    assert rows == [["pass", "t.py::test_ok"], ["fail", "t.py::test_fail"]]
+    images = browser.execute_script("return Array.from(document.images).map(i => [i.complete, i.naturalWidth])")
+    assert images == [[True, 16]]
+    assert browser.find_element("css selector", "h1").text == "layerbvh checks: 1 passed, 1 failed"

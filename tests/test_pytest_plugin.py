@@ -1,0 +1,87 @@
+"""The pytest plugin (entry point `layerbvh`) in a user's own project, run by pytest's pytester in a fresh process: a passing check, a failing one with its page kept, the summary across the run, the stock cache on a second run, the options."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from layerbvh_mitsuba.repo import SCENES
+
+TESTS = f'''
+import pytest
+SCENE = {str(SCENES / "cbox.xml")!r}
+
+def test_same(layerbvh_ab):
+    r = layerbvh_ab(SCENE, spp=8, res=(32, 32))
+    assert r.verdict.label == "same paths" and r.metrics["rmse"] < 1e-4
+
+def test_other_depth(layerbvh_ab):
+    # Negative control: ours with max_depth 1 (direct light only) against the scene's 8.
+    layerbvh_ab(SCENE, spp=8, res=(32, 32), ours={{"max_depth": 1}})
+
+@pytest.mark.layerbvh_compare(SCENE, spp=4, res=(16, 16), traversal="per_ray")
+def test_marked(layerbvh_result):
+    assert layerbvh_result.passed and layerbvh_result.stock.shape == (16, 16, 3)
+'''
+
+
+@pytest.fixture
+def project(pytester, monkeypatch, tmp_path):
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))  # an empty stock cache
+    pytester.makepyfile(test_user=TESTS)
+    return pytester
+
+
+def _records(path):
+    return {r["test"].split("::")[-1]: r for r in json.loads((path / "summary.json").read_text())["checks"]}
+
+
+def test_checks_pages_summary_and_cache(project):
+    out = project.path / "results"
+    run = project.runpytest_subprocess("-p", "no:cacheprovider", "--layerbvh-results", str(out))
+    run.assert_outcomes(passed=2, failed=1)
+    text = run.stdout.str()
+    # One readable paragraph: the verdict, the numbers, the page.
+    assert "AssertionError:" in text and "differs beyond noise" in text and "Page: " in text
+    rec = _records(out)
+    assert set(rec) == {"test_same", "test_other_depth", "test_marked"}
+    assert rec["test_same"]["label"] == "same paths" and rec["test_same"]["page"] is None
+    failed = rec["test_other_depth"]
+    assert not failed["passed"] and failed["page"].endswith("index.html")
+    page_dir = (out / failed["page"]).parent
+    for f in ("stock.exr", "ours.exr", "report.json", "z_fail.png"):
+        assert (page_dir / f).is_file(), f
+    assert json.loads((page_dir / "report.json").read_text())["verdict"]["label"] == "differs beyond noise"
+    index = (out / "index.html").read_text()
+    assert "2 passed, 1 failed" in index and failed["page"] in index
+    # Stock was rendered once per (scene, settings): test_other_depth found test_same's render.
+    assert not rec["test_same"]["stock_cached"] and rec["test_other_depth"]["stock_cached"]
+
+    again = project.runpytest_subprocess("-p", "no:cacheprovider", "--layerbvh-results", str(out),
+                                         "--layerbvh-keep-all", "-k", "same or marked")
+    again.assert_outcomes(passed=2)
+    rec = _records(out)
+    assert rec["test_same"]["stock_cached"] and rec["test_marked"]["stock_cached"]
+    assert (out / rec["test_same"]["page"]).is_file()  # --layerbvh-keep-all kept a passing check's page
+
+    fresh = project.runpytest_subprocess("-p", "no:cacheprovider", "--layerbvh-results", str(out),
+                                         "--layerbvh-no-cache", "-k", "same")
+    fresh.assert_outcomes(passed=1)
+    assert not _records(out)["test_same"]["stock_cached"]
+
+
+def test_traversal_option(project):
+    run = project.runpytest_subprocess("-p", "no:cacheprovider", "--layerbvh-traversal", "all", "-k", "same or marked",
+                                       "-v")
+    run.assert_outcomes(passed=8)  # each check once per mode
+    assert "test_same[layer_sorted]" in run.stdout.str() and "test_marked[layer_unsorted]" in run.stdout.str()
+    bad = project.runpytest_subprocess("-p", "no:cacheprovider", "--layerbvh-traversal", "fast")
+    assert bad.ret != 0 and "--layerbvh-traversal must be one of" in bad.stderr.str()
+
+
+def test_under_xdist_the_summary_is_built_once(project):
+    out = project.path / "results"
+    run = project.runpytest_subprocess("-p", "no:cacheprovider", "-n", "2", "--layerbvh-results", str(out))
+    run.assert_outcomes(passed=2, failed=1)
+    assert set(_records(out)) == {"test_same", "test_other_depth", "test_marked"}  # every worker's records
+    assert "2 passed, 1 failed" in (out / "index.html").read_text()
