@@ -158,7 +158,7 @@ def cached_stock(mi, scene, scene_path: Path, settings: dict, spp: int, seed: in
             problem = "does not match its checksum" if info.get("key") == key else "belongs to other settings"
         except (OSError, ValueError, RuntimeError) as e:
             problem = f"cannot be read ({str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__})"
-        print(f"layerbvh: cached stock render {exr} {problem}; rendering it again", file=sys.stderr)
+        print(f"layerbvh: cached reference {exr} {problem}; rendering it again", file=sys.stderr)
     stock = load_integrator(mi, {"type": "path", **settings["integrator"]})
     img, secs = render_passes(mi, scene, stock, spp, seed, label, progress)
     if not np.isfinite(img).all():
