@@ -128,6 +128,18 @@ MUTATIONS = (
              ("tests/test_stability.py::test_case[watertight_edges_vertices]",
               "tests/test_stability.py::test_case[grazing_rays]",
               "tests/test_stability.py::test_case[sliver_triangles]")),
+    Mutation("auto_prepass_skipped", "auto decides during the render again (no pre-pass): a render whose kinds all "
+             "go per_ray runs the wavefront loop",
+             "plugin/integrator.py",
+             "        if None in modes() and tracer.recorder is None:\n",
+             "        if False:\n",
+             ("tests/test_auto_scenes.py::test_per_ray_everywhere_renders_the_per_ray_megakernel",)),
+    Mutation("verdict_always_agrees", "the verdict's statistical step is ignored: diverged same-seed paths always "
+             "'agree within noise'",
+             "plugin/metrics.py",
+             "    return AGREES if z_test_passed(z_pass_fraction) else DIFFERS\n",
+             "    return AGREES\n",
+             ("tests/test_verdict.py::test_a_real_difference_differs[max_depth]",)),
 )
 
 
