@@ -6,43 +6,14 @@ import html
 import json
 import os
 import re
-import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
 
+from .testing import ABResult, run_check
+
 TRAVERSALS = ("auto", "per_ray", "layer_sorted", "layer_unsorted")
 RECORDS = "records"  # DIR/records/<test>.json, one per check: the summary is built from them
-
-
-@dataclass
-class ABResult:
-    """What a `layerbvh_ab` check found (returned when it passes)."""
-
-    scene: str
-    traversal: str
-    verdict: object            # verdict.Verdict
-    metrics: dict              # metrics.compare_images
-    stock_s: float             # stock's render (0 when it came from the cache)
-    ours_s: float
-    stock_cached: bool
-    page: str | None = None    # index.html of its compare page, where one was kept
-    stock: object = field(default=None, repr=False)
-    ours: object = field(default=None, repr=False)
-
-    @property
-    def passed(self) -> bool:
-        return self.verdict.passed
-
-    def message(self) -> str:
-        """One readable paragraph: the verdict, its numbers, where the page is."""
-        m = self.metrics
-        where = f" Page: {self.page}" if self.page else " (run with --layerbvh-results DIR to keep its page)"
-        return (f"{self.scene} ({self.traversal}): {self.verdict.label}. {self.verdict.summary()}. "
-                f"RMSE {m['rmse']:.3g}, relMSE {m['rel_mse']:.3g}, pixels over 1e-3 "
-                f"{100 * m['frac_pixels_over_1e-3']:.2f}%; stock {self.stock_s:.2f} s"
-                f"{' (cached)' if self.stock_cached else ''}, ours {self.ours_s:.2f} s.{where}")
 
 
 def pytest_addoption(parser):
@@ -86,47 +57,6 @@ def _results_dir(config) -> Path | None:
 def _slug(nodeid: str) -> str:
     name = re.sub(r"[^A-Za-z0-9_.-]+", "_", nodeid).strip("_")[-80:]
     return f"{name}-{hashlib.sha256(nodeid.encode()).hexdigest()[:8]}"
-
-
-def run_check(scene, spp=16, res=(64, 64), traversal="auto", seed=0, ours=None, variant="llvm_ad_rgb",
-              use_cache=True, keep_dir: Path | None = None, keep_all=False, **params) -> ABResult:
-    """Stock `path` (scene's own path settings; cached by scene content and settings) against
-    layerbvh with `ours` integrator properties on top, same seed, then the two-step verdict; the
-    compare page is written to `keep_dir` when the check fails (or always with `keep_all`)."""
-    import mitsuba
-    import layerbvh
-    from . import metrics
-    from .converge import cached_stock
-    from .render import cache_dir, load_integrator, load_scene, path_props, render_passes, use_variant
-    from .report import write_report
-    from .verdict import judge
-    mi = use_variant(variant)
-    scene_path = Path(scene).resolve()
-    sc = load_scene(mi, str(scene_path), tuple(res), **params)
-    props = path_props(mi, sc)
-    settings = {"resolution": list(res), "integrator": props, "variant": variant, "params": params,
-                "versions": {"mitsuba": mitsuba.__version__, "layerbvh": layerbvh.__version__}}
-    t0 = time.perf_counter()
-    if use_cache:
-        stock, info = cached_stock(mi, sc, scene_path, settings, spp, seed, cache_dir("pytest"), "stock", False)
-        cached = bool(info.get("cached"))
-    else:
-        stock = render_passes(mi, sc, load_integrator(mi, {"type": "path", **props}), spp, seed, "stock", False)[0]
-        cached = False
-    stock_s = 0.0 if cached else time.perf_counter() - t0
-    ours_props = {"traversal": traversal, **props, **(ours or {})}
-    integ = load_integrator(mi, {"type": "layerbvh", **ours_props})
-    img, ours_s = render_passes(mi, sc, integ, spp, seed, "layerbvh", False)
-    judged = judge(mi, scene_path, stock, img, spp, props, ours_props, params)
-    result = ABResult(scene=str(scene), traversal=traversal, verdict=judged, metrics=metrics.compare_images(stock, img),
-                      stock_s=stock_s, ours_s=ours_s, stock_cached=cached, stock=stock, ours=img)
-    if keep_dir is not None and (keep_all or not judged.passed):
-        info = {"scene": str(scene_path), "spp": spp, "resolution": list(res), "seed": seed, "variant": variant,
-                "integrator": props, "ours": {"traversal": traversal, "render_s": ours_s, **(ours or {})},
-                "stock": {"render_s": stock_s, "cached": cached}}
-        write_report(keep_dir, stock, img, info, judged=judged)
-        result.page = str(keep_dir / "index.html")
-    return result
 
 
 def _record(config, nodeid: str, result: ABResult) -> None:

@@ -728,13 +728,12 @@ def image_case(name: str, scene: str, scale: float, spp: int = 16, control: str 
     the stronger check for the price; the Z-tests with shown power are in tests/test_mitsuba_backend.py
     and tests/test_instancing.py.)"""
     mi = _mi()
-    from .render import _exr_threads, path_props
+    from .render import load_scene, path_props
     res = max(8, int(round(16 * math.sqrt(scale))))
     path = STIFF / f"{scene}.xml"
     imgs = {}
     for robust in (False, True):
-        with _exr_threads():  # infinite_mirrors' environment map: Mitsuba's EXR reader hangs on one thread
-            sc = mi.load_file(str(path), resx=res, resy=res, robust=robust, **params)
+        sc = load_scene(mi, str(path), resx=res, resy=res, robust=robust, **params)
         props = path_props(mi, sc)
         stock = mi.load_dict({"type": "path", **props})
         imgs[robust] = np.array(mi.render(sc, integrator=stock, spp=spp, seed=3), np.float64)

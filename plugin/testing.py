@@ -1,7 +1,8 @@
 """Reusable pytest helpers: check that the layerbvh integrator renders a scene like stock Mitsuba (same seed, and statistically)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -124,21 +125,87 @@ def assert_statistically_matches_stock(scene_path, min_pass=0.975, **kw) -> dict
     return r
 
 
+@dataclass
+class ABResult:
+    """What a `layerbvh_ab` check found (returned when it passes)."""
+
+    scene: str
+    traversal: str
+    verdict: object            # verdict.Verdict
+    metrics: dict              # metrics.compare_images
+    stock_s: float             # stock's render (0 when it came from the cache)
+    ours_s: float
+    stock_cached: bool
+    page: str | None = None    # index.html of its compare page, where one was kept
+    stock: object = field(default=None, repr=False)
+    ours: object = field(default=None, repr=False)
+
+    @property
+    def passed(self) -> bool:
+        return self.verdict.passed
+
+    def message(self) -> str:
+        """One readable paragraph: the verdict, its numbers, where the page is."""
+        m = self.metrics
+        where = f" Page: {self.page}" if self.page else " (run with --layerbvh-results DIR to keep its page)"
+        return (f"{self.scene} ({self.traversal}): {self.verdict.label}. {self.verdict.summary()}. "
+                f"RMSE {m['rmse']:.3g}, relMSE {m['rel_mse']:.3g}, pixels over 1e-3 "
+                f"{100 * m['frac_pixels_over_1e-3']:.2f}%; stock {self.stock_s:.2f} s"
+                f"{' (cached)' if self.stock_cached else ''}, ours {self.ours_s:.2f} s.{where}")
+
+
+def run_check(scene, spp=16, res=(64, 64), traversal="auto", seed=0, ours=None, variant=None, use_cache=True,
+              keep_dir: Path | None = None, keep_all=False, ours_modify=None, **params) -> ABResult:
+    """The A/B check of the pytest plugin and `verdict_vs_stock`: stock `path` (the scene's own
+    path settings; with `use_cache`, cached by scene content and settings) against layerbvh with
+    `ours` integrator properties on top (and `ours_modify(params)` applied to its copy of the
+    scene: negative controls), same seed, then the two-step verdict; the compare page is
+    written to `keep_dir` when the check fails (or always with `keep_all`)."""
+    import mitsuba
+    import layerbvh
+    from . import metrics
+    from .converge import cached_stock
+    from .render import cache_dir, load_integrator, load_scene, path_props, render_passes, use_variant
+    from .report import write_report
+    from .verdict import judge
+    mi = use_variant(variant)
+    scene_path = Path(scene).resolve()
+    sc = load_scene(mi, str(scene_path), tuple(res), **params)
+    props = path_props(mi, sc)
+    settings = {"resolution": list(res), "integrator": props, "variant": mi.variant(), "params": params,
+                "versions": {"mitsuba": mitsuba.__version__, "layerbvh": layerbvh.__version__}}
+    t0 = time.perf_counter()
+    if use_cache:
+        stock, info = cached_stock(mi, sc, scene_path, settings, spp, seed, cache_dir("pytest"), "stock", False)
+        cached = bool(info.get("cached"))
+    else:
+        stock = render_passes(mi, sc, load_integrator(mi, {"type": "path", **props}), spp, seed, "stock", False)[0]
+        cached = False
+    stock_s = 0.0 if cached else time.perf_counter() - t0
+    ours_props = {"traversal": traversal, **props, **(ours or {})}
+    integ = load_integrator(mi, {"type": "layerbvh", **ours_props})
+    ours_scene = sc if ours_modify is None else load_modified(mi, scene_path, tuple(res), params, ours_modify)
+    img, ours_s = render_passes(mi, ours_scene, integ, spp, seed, "layerbvh", False)
+    judged = judge(mi, scene_path, stock, img, spp, props, ours_props, params, ours_modify)
+    result = ABResult(scene=str(scene), traversal=traversal, verdict=judged, metrics=metrics.compare_images(stock, img),
+                      stock_s=stock_s, ours_s=ours_s, stock_cached=cached, stock=stock, ours=img)
+    if keep_dir is not None and (keep_all or not judged.passed):
+        info = {"scene": str(scene_path), "spp": spp, "resolution": list(res), "seed": seed, "variant": mi.variant(),
+                "integrator": props, "ours": {"traversal": traversal, "render_s": ours_s, **(ours or {})},
+                "stock": {"render_s": stock_s, "cached": cached}}
+        write_report(keep_dir, stock, img, info, judged=judged)
+        result.page = str(keep_dir / "index.html")
+    return result
+
+
 def verdict_vs_stock(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", ours_props=None, ours_modify=None,
                      **params):
     """The two-step verdict (plugin/verdict.py, as `layerbvh compare` gives it) of layerbvh
-    against stock `path` on an XML scene: same seed, and where same-seed paths diverged,
-    independent seeds on a downsampled film. `ours_modify(params)` changes ours' copy of the
-    scene (a negative control). Returns verdict.Verdict."""
-    mi = _mi()
-    from .render import path_props
-    from .verdict import judge
-    scene = load(scene_path, res, **params)
-    props = path_props(mi, scene)
-    ours = {"traversal": traversal, **props, **(ours_props or {})}
-    ours_scene = None if ours_modify is None else load_modified(mi, scene_path, res, params, ours_modify)
-    a, b = render_pair(scene, spp, seed, traversal, ours_scene=ours_scene, **(ours_props or {}))
-    return judge(mi, scene_path, a, b, spp, props, ours, params, ours_modify)
+    against stock `path` on an XML scene (`run_check`, stock rendered afresh): same seed, and
+    where same-seed paths diverged, independent seeds on a downsampled film. `ours_modify(params)`
+    changes ours' copy of the scene (a negative control). Returns verdict.Verdict."""
+    return run_check(scene_path, spp=spp, res=res, traversal=traversal, seed=seed, ours=ours_props, use_cache=False,
+                     ours_modify=ours_modify, **params).verdict
 
 
 def assert_agrees_with_stock(scene_path, **kw):
