@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 from pathlib import Path
 
@@ -66,8 +67,10 @@ def _parser() -> argparse.ArgumentParser:
     v.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant: any llvm_* or cuda_* (default %(default)s)")
     v.add_argument("--as-path", action="store_true", help=AS_PATH_HELP)
     v.add_argument("--no-progress", action="store_true")
+    from .bench.locality import add_parser as add_locality
     from .sweep import add_parser as add_sweep
     add_sweep(sub)
+    add_locality(sub)
     return p
 
 
@@ -85,11 +88,20 @@ def _check_args(args):
             raise UserError(f"-o must name an .exr file, got {args.output}")
         problem = atomic.check_output_file(args.output)
     else:
+        from .bench.locality import OUTPUT_MARKER as LOCALITY_MARKER
         from .converge import OUTPUT_MARKER
         from .report import REPORT_MARKER
-        problem = atomic.check_output_folder(args.out, REPORT_MARKER if args.command == "compare" else OUTPUT_MARKER)
+        marker = {"compare": REPORT_MARKER, "locality": LOCALITY_MARKER}.get(args.command, OUTPUT_MARKER)
+        problem = atomic.check_output_folder(args.out, marker)
     if problem:
         raise UserError(problem)
+    if args.command == "locality":
+        from .bench.locality import request_from_args
+        try:
+            request_from_args(args)
+        except ValueError as e:
+            raise UserError(str(e)) from None
+        return
     if args.command == "converge":
         return
     if args.spp is not None and args.spp < 1:
@@ -233,6 +245,7 @@ def disk_full(e: BaseException) -> bool:
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
+    args.command_line = "layerbvh " + shlex.join(sys.argv[1:] if argv is None else argv)  # what outputs quote
     try:
         return _run(args)
     except KeyboardInterrupt:  # Ctrl-C: outputs are written whole at the end, so nothing is left
@@ -270,6 +283,9 @@ def _run(args) -> int:
                 from .converge import run as converge
                 converge(mi, args)
                 return 0
+            if args.command == "locality":
+                from .bench.locality import run as locality
+                return locality(mi, args, args.command_line)
             return cmd_render(mi, args) if args.command == "render" else cmd_compare(mi, args)
         except UnsupportedShapeError as e:
             raise UserError(str(e)) from None

@@ -80,8 +80,9 @@ JOBS = {
     "converge": Job("converge", True, lambda s: s["config"]),
     "bench": Job("bench", True, lambda s: f"{s['rays']} rays h={','.join(map(str, s['heights']))}"),
     "third_party": Job("third_party", False, lambda s: s["traversal"]),
+    "locality": Job("locality", False, lambda s: f"{s['rays']} rays h={s['treelet_height']}"),
 }
-CLI_JOBS = ("compare", "converge", "bench")  # third_party is driven by scripts/third_party.py
+CLI_JOBS = ("compare", "converge", "bench", "locality")  # third_party is driven by scripts/third_party.py
 GENERATED_RAYS = ("coherent", "incoherent")  # bench rays generated over the scene's triangles (meshes.py)
 
 
@@ -522,7 +523,9 @@ def add_parser(sub) -> None:
     s.add_argument("scenes", nargs="+", metavar="SCENE_OR_GLOB", help="Mitsuba 3 XML scenes (globs are expanded)")
     s.add_argument("--job", required=True, choices=CLI_JOBS,
                    help="compare: stock vs layerbvh A/B per traversal and treelet height; converge: error against "
-                        "time per configuration (timed); bench: traversal throughput on the scene's triangles (timed)")
+                        "time per configuration (timed); bench: traversal throughput on the scene's triangles (timed); "
+                        "locality: memory transactions and cache hits of the scene's recorded rays per mode (a model, "
+                        "untimed)")
     s.add_argument("--out", required=True, help="sweep folder: results.csv/.json, summary.md, index.html, points/")
     where = s.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, help="worker processes of a local Dask cluster (default: cores)")
@@ -545,7 +548,11 @@ def add_parser(sub) -> None:
                                   f"(generated over the scene's triangles) or recorded kinds (camera, "
                                   f"first_bounce_diffuse, diffuse, glossy, specular, shadow) (default "
                                   f"{','.join(GENERATED_RAYS)})")
-    s.add_argument("--ray-count", type=int, help="bench: rays per set (default 1,000,000)")
+    s.add_argument("--ray-count", type=int, help="bench: rays per set (default 1,000,000); locality: rays recorded "
+                                                 "per kind at most (default 1,000,000)")
+    s.add_argument("--preset", help="locality: comma list of hardware presets (default gtx965m,h200,cpu)")
+    s.add_argument("--warp", help="locality: comma list of warp widths (default: each preset's own)")
+    s.add_argument("--sample", type=int, help="locality: replay at most N rays per kind (default: all)")
     s.add_argument("--runs", type=int, help="bench: timed runs per configuration (default 5)")
     s.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb, cuda_ad_rgb)")
     s.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S,
@@ -561,6 +568,7 @@ JOB_OPTIONS = {  # which options each job takes (an option given to another job 
     "compare": {"spp", "res", "seed", "traversal", "treelet_heights"},
     "converge": {"res", "configs", "budget", "ref_spp", "max_spp"},
     "bench": {"spp", "res", "seed", "treelet_heights", "rays", "ray_count", "runs"},
+    "locality": {"spp", "res", "seed", "treelet_heights", "rays", "ray_count", "preset", "warp", "sample"},
 }
 ALL_JOB_OPTIONS = set().union(*JOB_OPTIONS.values())
 
@@ -628,6 +636,8 @@ def grid(args) -> list[dict]:
             raise UserError(str(e)) from None
         return [{"config": c.name, "budget": args.budget, "ref_spp": args.ref_spp or 4096, "max_spp": args.max_spp,
                  "res": res, "variant": args.variant} for c in configs]
+    if args.job == "locality":
+        return _locality_grid(args, res, seed)
     from . import record
     kinds = _names(args.rays or ",".join(GENERATED_RAYS))
     for k in kinds:
@@ -649,6 +659,30 @@ def grid(args) -> list[dict]:
     return [{"rays": k, "heights": heights, "ray_count": args.ray_count or 1_000_000, "runs": args.runs or 5,
              "res": None if k in GENERATED_RAYS else res or [512, 512], "spp": None if k in GENERATED_RAYS else spp[0],
              "seed": seed, "variant": args.variant} for k in kinds]
+
+
+def _locality_grid(args, res, seed: int) -> list[dict]:
+    """One point per recorded kind and treelet height; each replays every mode x preset x warp."""
+    from types import SimpleNamespace
+
+    import layerbvh
+
+    from .bench.locality import DEFAULT_CAP, DEFAULT_KINDS, DEFAULT_PRESETS, DEFAULT_SPP, request_from_args
+    opts = SimpleNamespace(scene="", res=res, spp=int(args.spp) if args.spp and args.spp.isdigit() else None,
+                           seed=seed, rays=args.rays or ",".join(DEFAULT_KINDS), warp=args.warp,
+                           preset=args.preset or ",".join(DEFAULT_PRESETS),
+                           treelet_heights=args.treelet_heights or str(layerbvh.DEFAULT_TREELET_HEIGHT),
+                           modes=",".join(layerbvh.MODES), leaf_size=layerbvh.DEFAULT_LEAF_SIZE, sample=args.sample,
+                           cap=args.ray_count or DEFAULT_CAP, no_check=False)
+    if args.spp and not args.spp.isdigit():
+        raise UserError(f"--spp for --job locality is one value >= 1 (the recording's), got {args.spp}")
+    try:
+        req = request_from_args(opts)
+    except ValueError as e:
+        raise UserError(str(e)) from None
+    return [{"rays": k, "treelet_height": h, "presets": list(req.presets), "warps": list(req.warps or []) or None,
+             "res": res, "spp": req.spp or DEFAULT_SPP, "seed": seed, "sample": req.sample, "ray_count": req.cap,
+             "variant": args.variant} for k in req.kinds for h in req.treelet_heights]
 
 
 def run_command(args) -> int:

@@ -120,19 +120,11 @@ def run_converge(point: dict, out: Path) -> dict:
 
 
 def _recorded_rays(mi, point: dict, kind: str):
-    """(vertices, faces, o, d, tmax, source) of one recorded kind; the recording of the scene at the point's
-    resolution, spp and seed is kept in the cache (keyed like converge's references) for the other kinds."""
-    from . import record
-    from .bench.record_rays import record_scene
-    from .converge import reference_key
-    from .render import cache_dir
+    """(vertices, faces, o, d, tmax, source) of one recorded kind, from the scene's cached recording at
+    the point's resolution, spp and seed (record_rays.cached_recording)."""
+    from .bench.record_rays import cached_recording
     s = point["settings"]
-    what = {"record": {"res": s["res"], "spp": s["spp"], "seed": s["seed"], "cap": s["ray_count"]},
-            "variant": s["variant"], "mitsuba": mi.__version__}
-    path = cache_dir("rays") / f"{reference_key(Path(point['scene']), what)[:24]}.npz"
-    if not path.is_file():
-        record_scene(mi, point["scene"], s["res"], s["spp"], s["seed"], s["ray_count"]).save(path)
-    v, f, rays, meta = record.load(path)
+    v, f, rays, meta = cached_recording(mi, point["scene"], s["res"], s["spp"], s["seed"], s["ray_count"])
     if kind not in rays:
         raise PointError(f"the render traced no {kind} rays ({s['res'][0]}x{s['res'][1]}, {s['spp']} spp)")
     o, d, tmax = rays[kind]
@@ -191,7 +183,30 @@ def run_third_party(point: dict, out: Path) -> dict:
     return run_worker(SimpleNamespace(worker=point["scene"], **point["settings"]))
 
 
-RUNNERS = {"compare": run_compare, "converge": run_converge, "bench": run_bench, "third_party": run_third_party}
+def run_locality(point: dict, out: Path) -> dict:
+    """The locality model (bench/locality.py) on one recorded kind and treelet height of the scene:
+    every mode x preset x warp width; its locality.json, and the headline of the first preset."""
+    import layerbvh
+
+    from .bench.locality import LocalityRequest, headline, measure_scene, write_outputs
+    from .render import use_variant
+    s = point["settings"]
+    mi = use_variant(s["variant"])
+    req = LocalityRequest(scene=point["scene"], res=tuple(s["res"]) if s.get("res") else None, spp=s["spp"],
+                          seed=s["seed"], kinds=(s["rays"],), warps=tuple(s["warps"]) if s.get("warps") else None,
+                          presets=tuple(s["presets"]), treelet_heights=(s["treelet_height"],), modes=layerbvh.MODES,
+                          leaf_size=layerbvh.DEFAULT_LEAF_SIZE, sample=s.get("sample"), cap=s["ray_count"])
+    try:
+        doc = measure_scene(mi, req, progress=False)
+    except ValueError as e:
+        raise PointError(str(e)) from None
+    write_outputs(out / "locality", doc, f"layerbvh sweep --job locality: {point['name']}, {s['rays']} rays")
+    return {"report": "locality/summary.md", "resolution": doc["resolution"], "triangles": doc["triangles"],
+            **headline(doc)}
+
+
+RUNNERS = {"compare": run_compare, "converge": run_converge, "bench": run_bench, "third_party": run_third_party,
+           "locality": run_locality}
 
 
 def main(argv=None) -> int:

@@ -22,6 +22,8 @@ FIGURES = {
     "bench": ("rays", "query", "ray_count", "embree_mrays_s", "per_ray_mrays_s", "per_ray_h", "sorted_mrays_s",
               "sorted_h", "sorted_vs_per_ray", "sorted_vs_embree", "per_ray_vs_embree", "memory_vs_per_ray",
               "auto_mrays_s", "auto_choice", "auto_vs_best_of_two"),
+    "locality": ("rays", "preset", "warp", "per_ray_transactions", "sorted_transactions", "per_ray_dram_bytes",
+                 "sorted_dram_bytes", "sorted_sort_bytes", "sorted_total_vs_per_ray", "trace_exact"),
     "third_party": ("result", "within_1e-3", "mean_abs", "max_abs", "flip_mean", "rel_mse", "rays_other_prim",
                     "ray_ties", "stock_s", "ours_s", "notes"),
 }
@@ -33,6 +35,8 @@ SHOWN = {
     "bench": ("rays", "ray_count", "embree_mrays_s", "per_ray_mrays_s", "per_ray_h", "sorted_mrays_s", "sorted_h",
               "sorted_vs_per_ray", "sorted_vs_embree", "auto_choice"),
     "third_party": ("result", "within_1e-3", "flip_mean", "rays_other_prim", "stock_s", "ours_s"),
+    "locality": ("rays", "preset", "warp", "per_ray_transactions", "sorted_transactions", "per_ray_dram_bytes",
+                 "sorted_dram_bytes", "sorted_sort_bytes", "sorted_total_vs_per_ray", "trace_exact"),
 }
 SHOWN_COMMON = ("scene", "config", "spp", "resolution", "triangles", "status")
 SHOWN_TAIL = ("host", "wall_s", "ran", "error")
@@ -133,6 +137,28 @@ def merge_bench(out: Path, points, results, command: str) -> None:
     atomic.write_text(out / "bench.json", json.dumps(merged, indent=1))
 
 
+def merge_locality(out: Path, points, results, command: str) -> None:
+    """locality.json: every point's rows (each with its scene), checks and verdict sentences, for
+    scripts/report.py's locality section."""
+    docs = []
+    for p, r in zip(points, results):
+        if p.job == "locality" and r is not None and r["status"] == "ok":
+            doc = json.loads((out / "points" / p.dirname / "locality" / "locality.json").read_text())
+            docs.append((p, doc))
+    if not docs:
+        return
+    scene = (lambda p: Path(p.name).name)
+    merged = {"command": command,
+              "results": [{**row, "scene": scene(p), "triangles": d["triangles"]} for p, d in docs for row in d["results"]],
+              "checks": [{**c, "scene": scene(p)} for p, d in docs for c in d["checks"]],
+              "verdict": [f"{scene(p)}: {v}" for p, d in docs for v in d["verdict"]],
+              "presets": {k: v for _, d in docs for k, v in d["presets"].items()},
+              "preset_lines": list(dict.fromkeys(line for _, d in docs for line in d["preset_lines"])),
+              "scenes": {scene(p): {k: d[k] for k in ("resolution", "spp", "triangles", "kinds", "sampled")}
+                         for p, d in docs}}
+    atomic.write_text(out / "locality.json", json.dumps(merged, indent=1))
+
+
 # -- the table --------------------------------------------------------------------------------------
 
 
@@ -216,6 +242,8 @@ def write_tables(res, command: str) -> list[dict]:
     extra = merge_converge(out, res.points, res.results) if job == "converge" else {}
     if job == "bench":
         merge_bench(out, res.points, res.results, command)
+    if job == "locality":
+        merge_locality(out, res.points, res.results, command)
     ran = set(res.ran)
     rows = [row(p, r, ran, extra) for p, r in zip(res.points, res.results)]
     columns = COMMON + FIGURES[job]

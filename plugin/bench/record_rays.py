@@ -49,6 +49,22 @@ def record_scene(mi, scene_path, res, spp: int, seed: int, cap: int) -> Recordin
     return Recording(tracer.recorder, vertices, faces, meta, secs)
 
 
+def cached_recording(mi, scene_path, res, spp: int, seed: int, cap: int):
+    """(vertices, faces, {kind: (o, d, tmax)}, meta) of the scene's recording at these settings,
+    kept in the cache ($XDG_CACHE_HOME/layerbvh/rays, keyed like converge's references: the scene,
+    every file it references, the settings and Mitsuba's version), so tools that replay the same
+    rays record them once."""
+    from layerbvh_mitsuba import record
+    from layerbvh_mitsuba.converge import reference_key
+    from layerbvh_mitsuba.render import cache_dir
+    what = {"record": {"res": list(res), "spp": spp, "seed": seed, "cap": cap}, "variant": mi.variant(),
+            "mitsuba": mi.__version__}
+    path = cache_dir("rays") / f"{reference_key(Path(scene_path), what)[:24]}.npz"
+    if not path.is_file():
+        record_scene(mi, scene_path, res, spp, seed, cap).save(path)
+    return record.load(path)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("scene", help="Mitsuba 3 XML scene")

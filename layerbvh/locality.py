@@ -1,0 +1,419 @@
+"""The locality model: a traversal's exact memory trace (memtrace) per mode, run through the coalescing and cache model (memmodel) for a warp width and a hardware preset, checked against the kernel, reduced to one row of numbers."""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from . import memtrace as mt
+from .inputs import DEFAULT_TREELET_HEIGHT
+from .layout import LayerLayout
+from .memmodel import Caches, Preset, preset as named_preset
+from .state import MISS
+from .wavefront import ENTRY_BYTES, MODES, TAIL_FRACTION, TAIL_RAYS
+
+# Fields a wavefront step carries per ray (state.RayState without the work counters, as timed
+# runs trace: t u v prim link sp slot treelet), 4 bytes each.
+STATE_FIELDS = 8
+STATE_BYTES = 4 * STATE_FIELDS
+RAY_RECORD_BYTES = 32       # state.RayRecords: one 32-byte record per ray (the layer modes)
+PER_RAY_LOADS = 7           # per_ray reads o, d (six arrays) and tmax by slot: 4 bytes each
+REGION_ALIGN = 4096
+
+
+@dataclass
+class ReplayResult:
+    """One mode's replay under one schedule: per-ray hits and work (for the check against the
+    kernel) and the memory model's tallies."""
+
+    mode: str
+    warp: int
+    preset: Preset
+    rays: int                       # rays traced (valid rays of the set)
+    prim: np.ndarray                # per ray of the input (MISS: none / not occluded)
+    t: np.ndarray                   # float32, inf on a miss
+    work: dict                      # per ray: inner_nodes, leaves, triangles, iterations, steps
+    tally: np.ndarray               # [site, (transactions, lane requests)]
+    levels_hit: np.ndarray          # [site, level]: transactions served by each level (last: DRAM)
+    warp_iterations: int
+    lane_iterations: int
+    kernels: int                    # kernel launches (wavefront steps, the tail)
+    sort_bytes: int                 # bytes moved between steps (see sort_traffic)
+    seconds: float
+
+
+def _regions(sizes: dict) -> dict:
+    """Byte base of each named array in one address space, each on its own 4 KiB page (arrays
+    never share a line, as separate allocations never do)."""
+    base, out = 0, {}
+    for name, nbytes in sizes.items():
+        out[name] = base
+        base += -(-max(int(nbytes), 1) // REGION_ALIGN) * REGION_ALIGN + REGION_ALIGN
+    return out
+
+
+def valid_rays(o: np.ndarray, d: np.ndarray, tmax: np.ndarray) -> np.ndarray:
+    """inputs.ray_batch's validity: finite origin and direction, nonzero direction, tmax > 0."""
+    ok = np.isfinite(o).all(1) & np.isfinite(d).all(1) & (d != 0).any(1)
+    return ok & ~np.isnan(tmax) & (tmax > 0)
+
+
+def sort_traffic(n: int, pushed: int, done: int, cap_local: int, sort: bool, last: bool) -> int:
+    """Bytes a wavefront step moves outside its traversal kernel, each array element read or
+    written once (these are streams far larger than any cache, so all of it counts as DRAM traffic):
+    the kernel's outputs (state, done flag, entry count, its local entries), the write-back of the
+    entries it pushed to the global stacks, the sort keys, the sort or compaction, and the
+    permutation of the state of the rays still going. The results each ray writes when it finishes
+    are not counted: per_ray writes the same."""
+    out = n * (STATE_BYTES + 1 + 4 + cap_local * ENTRY_BYTES)
+    back = n * (cap_local * ENTRY_BYTES + 4 + 4 + 4) + pushed * ENTRY_BYTES + n * 4
+    if last:
+        return out + back
+    keys = n * (1 + 4 + 4) + n  # done + next treelet -> key; counting the finished rays
+    left = n - done
+    order = n * 4 + n * 4 + left * 8 if sort else n + left * 4  # block_mkperm + its first `left`; compress
+    take = left * 2 * STATE_BYTES
+    return out + back + keys + order + take
+
+
+def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, preset: Preset,
+           tail_rays: int = TAIL_RAYS, tail_fraction: float = TAIL_FRACTION) -> ReplayResult:
+    """Trace the rays (numpy (N, 3), (N, 3), (N,)) in `mode` as wavefront.trace schedules them,
+    with `warp` lanes per warp (packet) on `preset`'s units and caches."""
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    t0 = time.perf_counter()
+    o = np.ascontiguousarray(o, np.float32)
+    d = np.ascontiguousarray(d, np.float32)
+    tmax = np.ascontiguousarray(np.broadcast_to(np.asarray(tmax, np.float32), (len(o),)))
+    n_all = len(o)
+    order = np.flatnonzero(valid_rays(o, d, tmax)).astype(np.int64)
+    n = len(order)
+    nodes_f, nodes_u, tris_f, tris_u, tris_d, tf, nt = mt.layout_views(lay)
+    fst = np.zeros((n_all, mt.F_COLS), np.float32)
+    ist = np.zeros((n_all, mt.I_COLS), np.int64)
+    mt.setup_rays(o, d, fst, ist, tmax)
+    layer = mode != "per_ray"
+    cap_g = max(1, lay.depth)
+    cap_local = max(1, min(lay.height, lay.depth)) if layer else cap_g
+    cap_max = max(cap_local, cap_g)
+    lanes_held = mt.local_stack_rows(preset.units, preset.resident_warps, warp)
+    loc_link = np.zeros((lanes_held, cap_max + 1), np.int64)
+    loc_t = np.zeros((lanes_held, cap_max + 1), np.float32)
+    # Entry stacks in global memory, as wavefront.trace allocates them (only the layer modes have them).
+    g_link = np.zeros((n_all if layer else 1, cap_g), np.uint32)
+    g_t = np.zeros((n_all if layer else 1, cap_g), np.float32)
+
+    local_words = preset.units * preset.resident_warps * (cap_max + 1) * warp
+    sizes = {"nodes": lay.nodes.nbytes, "tris": lay.tris.nbytes, "treelet_first": lay.treelet_first.nbytes,
+             "node_treelet": lay.node_treelet.nbytes, "stack_link": n_all * cap_g * 4, "stack_t": n_all * cap_g * 4,
+             "local_link": local_words * 4, "local_t": local_words * 4}
+    if layer:
+        sizes["ray_records"] = n_all * RAY_RECORD_BYTES
+        sizes.update({f"state_{k}": n_all * 4 for k in range(STATE_FIELDS)})
+        start = [("ray_records", RAY_RECORD_BYTES, False)] + [(f"state_{k}", 4, True) for k in range(STATE_FIELDS)]
+    else:
+        sizes.update({f"ray_{k}": n_all * 4 for k in range(PER_RAY_LOADS)})
+        start = [(f"ray_{k}", 4, False) for k in range(PER_RAY_LOADS)]
+    base = _regions(sizes)
+    site_base = np.zeros(mt.SITES, np.int64)
+    site_bytes = np.ones(mt.SITES, np.int64)
+    site_local = np.zeros(mt.SITES, np.bool_)
+    for site, region, nbytes, local in (
+            (mt.S_TRI, "tris", 64, False), (mt.S_LOC_R_LINK, "local_link", 4, True),
+            (mt.S_LOC_R_T, "local_t", 4, True), (mt.S_STACK_LINK, "stack_link", 4, False),
+            (mt.S_STACK_T, "stack_t", 4, False), (mt.S_NODE_TRELET, "node_treelet", 4, False),
+            (mt.S_TF, "treelet_first", 4, False), (mt.S_NODE, "nodes", 64, False),
+            (mt.S_LOC_W_LINK, "local_link", 4, True), (mt.S_LOC_W_T, "local_t", 4, True)):
+        site_base[site], site_bytes[site], site_local[site] = base[region], nbytes, local
+    for k, (region, nbytes, _) in enumerate(start):
+        site_base[mt.S_START + k], site_bytes[mt.S_START + k] = base[region], nbytes
+    start_sites = np.arange(len(start), dtype=np.int64)
+    start_by_pos = np.array([by_pos for _, _, by_pos in start], np.bool_)
+
+    caches = Caches(preset)
+    tags, stamps, params, counts, clock = caches.arrays
+    n_levels = len(preset.levels)
+    tally = np.zeros((mt.SITES, 2), np.int64)
+    levels_hit = np.zeros((mt.SITES, n_levels + 1), np.int64)
+    lanes = np.zeros(3, np.int64)
+    views = (nodes_f, nodes_u, tris_f, tris_u, tris_d, tf, nt)
+    state = (fst, ist, loc_link, loc_t, g_link, g_t)
+    sites = (site_base, site_bytes, site_local, start_sites, start_by_pos, preset.segment_bytes)
+    model = (tags, stamps, params, counts, clock, tally, levels_hit, lanes)
+
+    def launch(rays, bounded, use_global, cap):
+        if preset.flush_private_each_kernel:
+            caches.flush_private()
+        mt.run_kernel(rays, warp, preset.units, preset.resident_warps, preset.block_warps, bounded, use_global, cap,
+                      any_hit, cap_g, *views, *state, *sites, *model)
+
+    kernels, sort_bytes = 0, 0
+    if n and not layer:
+        launch(order, False, False, cap_g)
+        kernels = 1
+    elif n:
+        sort = mode == "layer_sorted"
+        finished = lay.treelet_count
+        n0 = n_active = n
+        while n_active > 0:
+            if n_active <= max(tail_rays, int(tail_fraction * n0)) and kernels > 0:
+                launch(order, False, True, cap_g)
+                kernels += 1
+                break
+            pushed_before = int(lanes[2])
+            launch(order, True, True, cap_local)
+            kernels += 1
+            pushed = int(lanes[2]) - pushed_before
+            keys = mt.next_treelets(order, ist, finished)
+            done = int(np.count_nonzero(keys == finished))
+            last = done == n_active
+            sort_bytes += sort_traffic(n_active, pushed, done, cap_local, sort, last)
+            if last:
+                break
+            # block_mkperm is a stable counting sort; finished rays go last and are dropped.
+            keep = np.argsort(keys, kind="stable")[:n_active - done] if sort else np.flatnonzero(keys != finished)
+            order = order[keep]
+            n_active -= done
+
+    prim = np.full(n_all, MISS, np.int64)
+    t = np.full(n_all, np.inf, np.float32)
+    valid = np.zeros(n_all, bool)
+    valid[np.flatnonzero(valid_rays(o, d, tmax))] = True
+    prim[valid] = ist[valid, mt.I_PRIM]
+    hit = prim != MISS
+    t[hit] = fst[hit, mt.F_T]
+    work = {name: np.where(valid, ist[:, col], 0) for name, col in (
+        ("inner_nodes", mt.I_INNER), ("leaves", mt.I_LEAF), ("triangles", mt.I_TRI), ("iterations", mt.I_ITER),
+        ("steps", mt.I_STEPS))}
+    return ReplayResult(mode=mode, warp=warp, preset=preset, rays=n, prim=prim, t=t, work=work, tally=tally,
+                        levels_hit=levels_hit, warp_iterations=int(lanes[0]), lane_iterations=int(lanes[1]),
+                        kernels=kernels, sort_bytes=sort_bytes, seconds=time.perf_counter() - t0)
+
+
+# -- the check: the trace follows the kernel ---------------------------------------------------------
+@dataclass
+class TraceCheck:
+    """Where a replay and the kernel (LayerBVH.trace/occluded with stats) disagree, per ray."""
+
+    mode: str
+    rays: int
+    hit_mismatches: int             # prim differs, or t's bits differ on a hit
+    work_mismatches: dict           # per counter: rays whose count differs
+
+    @property
+    def exact(self) -> bool:
+        return self.hit_mismatches == 0 and not any(self.work_mismatches.values())
+
+
+def check_trace(bvh, o, d, tmax, any_hit: bool, rep: ReplayResult) -> TraceCheck:
+    """Trace the same rays with the kernel (bvh: a layerbvh.LayerBVH over the replayed layout,
+    batch_rays >= the ray count) in rep.mode and compare hits and per-ray work counts."""
+    if any_hit:
+        q = bvh.occluded(o, d, tmax, mode=rep.mode, stats=True)
+        kernel_hit = np.asarray(q.occluded, bool)
+        hits = int(np.count_nonzero(kernel_hit != (rep.prim != MISS)))
+        work = q.work
+    else:
+        h = bvh.trace(o, d, tmax, mode=rep.mode, stats=True)
+        kp, kt = np.asarray(h.prim).astype(np.int64), np.asarray(h.t, np.float32)
+        same_t = (kt.view(np.uint32) == rep.t.view(np.uint32)) | (kp == MISS)
+        hits = int(np.count_nonzero((kp != rep.prim) | ~same_t))
+        work = h.work
+    mism = {name: int(np.count_nonzero(np.asarray(work[name]).astype(np.int64) != rep.work[name]))
+            for name in rep.work}
+    return TraceCheck(mode=rep.mode, rays=len(rep.prim), hit_mismatches=hits, work_mismatches=mism)
+
+
+# -- one row of numbers ------------------------------------------------------------------------------
+@dataclass
+class LocalityRow:
+    """What one kind of rays costs in one mode, warp width and preset, per ray (see README:
+    'What the locality numbers mean'). Transactions and cache figures are of the traversal kernels'
+    loads; sort_bytes_per_ray is what the layer modes move between steps (0 for per_ray)."""
+
+    kind: str
+    mode: str
+    warp: int
+    preset: str
+    treelet_height: int
+    rays: int
+    inner_per_ray: float
+    leaves_per_ray: float
+    tris_per_ray: float
+    iterations_per_ray: float
+    kernels: int
+    transactions_per_ray: float
+    node_transactions_per_ray: float
+    triangle_transactions_per_ray: float
+    stack_transactions_per_ray: float
+    local_transactions_per_ray: float
+    ray_transactions_per_ray: float
+    requests_per_transaction: float     # lane loads served per transaction (1 = none coalesced)
+    simd_efficiency: float
+    l1_hit_rate: float
+    l2_hit_rate: float
+    l3_hit_rate: float | None
+    l2_bytes_per_ray: float             # bytes into L1 from below (L1 misses x L1 line)
+    dram_bytes_per_ray: float           # bytes from DRAM (last level's misses x its line)
+    node_dram_bytes_per_ray: float
+    triangle_dram_bytes_per_ray: float
+    sort_bytes_per_ray: float
+    total_dram_bytes_per_ray: float     # dram + sort: what the mode costs the memory bus
+    sampled_from: int | None = None     # rays the kind had before sampling (None: not sampled)
+    seconds: float = 0.0
+    trace_exact: bool | None = None     # the trace matched the kernel on every ray (None: not checked)
+    preset_params: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def row(kind: str, rep: ReplayResult, treelet_height: int, sampled_from: int | None = None,
+        check: TraceCheck | None = None) -> LocalityRow:
+    """The row of one replay."""
+    n = max(rep.rays, 1)
+    levels = rep.preset.levels
+    tx = rep.tally[:, 0]
+    lh = rep.levels_hit
+    total = int(tx.sum())
+
+    def per_ray(sites):
+        return float(tx[list(sites)].sum()) / n
+
+    def rate(k):  # hits at level k over the transactions that reached it
+        reached = int(lh[:, k:].sum())
+        return float(lh[:, k].sum()) / reached if reached else 0.0
+
+    def dram(sites):
+        return float(lh[list(sites), -1].sum()) * levels[-1].line_bytes / n
+    start_sites = range(mt.S_START, mt.SITES)
+    return LocalityRow(
+        kind=kind, mode=rep.mode, warp=rep.warp, preset=rep.preset.name, treelet_height=treelet_height, rays=rep.rays,
+        inner_per_ray=rep.work["inner_nodes"].sum() / n, leaves_per_ray=rep.work["leaves"].sum() / n,
+        tris_per_ray=rep.work["triangles"].sum() / n, iterations_per_ray=rep.work["iterations"].sum() / n,
+        kernels=rep.kernels, transactions_per_ray=total / n,
+        node_transactions_per_ray=per_ray(mt.CATEGORY["node"]),
+        triangle_transactions_per_ray=per_ray(mt.CATEGORY["triangle"]),
+        stack_transactions_per_ray=per_ray(mt.CATEGORY["stack"]),
+        local_transactions_per_ray=per_ray(mt.CATEGORY["local"]),
+        ray_transactions_per_ray=per_ray(start_sites),
+        requests_per_transaction=float(rep.tally[:, 1].sum()) / total if total else 0.0,
+        simd_efficiency=rep.lane_iterations / (rep.warp_iterations * rep.warp) if rep.warp_iterations else 0.0,
+        l1_hit_rate=rate(0), l2_hit_rate=rate(1) if len(levels) > 1 else 0.0,
+        l3_hit_rate=rate(2) if len(levels) > 2 else None,
+        l2_bytes_per_ray=float(total - lh[:, 0].sum()) * levels[0].line_bytes / n,
+        dram_bytes_per_ray=dram(range(mt.SITES)),
+        node_dram_bytes_per_ray=dram(mt.CATEGORY["node"]), triangle_dram_bytes_per_ray=dram(mt.CATEGORY["triangle"]),
+        sort_bytes_per_ray=rep.sort_bytes / n,
+        total_dram_bytes_per_ray=dram(range(mt.SITES)) + rep.sort_bytes / n,
+        sampled_from=sampled_from, seconds=rep.seconds, trace_exact=None if check is None else check.exact,
+        preset_params=rep.preset.as_dict())
+
+
+def sample_rays(o, d, tmax, limit: int | None, seed: int = 0):
+    """At most `limit` of the rays, drawn uniformly without replacement and kept in their
+    original order (the order is part of the schedule); (o, d, tmax, rays before sampling or None)."""
+    n = len(o)
+    if limit is None or n <= limit:
+        return o, d, tmax, None
+    keep = np.sort(np.random.default_rng(seed).choice(n, limit, replace=False))
+    return o[keep], d[keep], np.asarray(tmax)[keep], n
+
+
+@dataclass(frozen=True)
+class LocalitySettings:
+    """What `measure` runs: every mode x warp width x preset x treelet height on each kind of rays."""
+
+    modes: tuple = MODES
+    warps: tuple | None = None      # None: each preset's own width (its `warp`)
+    presets: tuple = ("gtx965m", "h200", "cpu")
+    treelet_heights: tuple = (DEFAULT_TREELET_HEIGHT,)
+    sample: int | None = None       # at most this many rays per kind (uniform; None: all)
+    seed: int = 0
+    check: bool = True              # compare each mode's trace with the kernel (once per kind, height)
+
+
+def verdict(rows: list[LocalityRow]) -> list[str]:
+    """One sentence per (kind, preset, warp, treelet height): does sorting by treelet cut what
+    the traversal costs the memory system, once its own traffic is paid?"""
+    out = []
+    key = (lambda r: (r.kind, r.preset, r.warp, r.treelet_height))
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault(key(r), {})[r.mode] = r
+    for (kind, pre, warp, h), g in groups.items():
+        if "per_ray" not in g or "layer_sorted" not in g:
+            continue
+        p, s = g["per_ray"], g["layer_sorted"]
+        tx = s.transactions_per_ray / p.transactions_per_ray if p.transactions_per_ray else float("nan")
+        dr = s.dram_bytes_per_ray / p.dram_bytes_per_ray if p.dram_bytes_per_ray else float("nan")
+        tot = s.total_dram_bytes_per_ray / p.dram_bytes_per_ray if p.dram_bytes_per_ray else float("nan")
+        wins = tot < 1.0
+        out.append(
+            f"{kind}, {pre}, W={warp}, H={h}: sorted traversal kernels issue {tx:.2f}x per_ray's transactions and "
+            f"read {dr:.2f}x its DRAM bytes (L1 hit rate {s.l1_hit_rate:.2f} vs {p.l1_hit_rate:.2f}); with the "
+            f"{s.sort_bytes_per_ray:.0f} B/ray the steps move between kernels, {tot:.2f}x: sorting "
+            + ("wins on memory traffic." if wins else "does not pay for itself in memory traffic."))
+    return out
+
+
+@dataclass
+class RaySet:
+    """One kind of rays to replay: numpy origins (N, 3), directions (N, 3), tmax (N,), and whether
+    they are any-hit queries (shadow rays)."""
+
+    kind: str
+    o: np.ndarray
+    d: np.ndarray
+    tmax: np.ndarray
+    any_hit: bool = False
+
+
+@dataclass
+class LocalityRun:
+    """What `measure` gives: the rows, the trace checks and the build of each treelet height."""
+
+    rows: list
+    checks: list                     # TraceCheck per (kind, height, mode), as dicts with kind and height
+    bvh: dict                        # treelet height -> BVHStats as a dict
+    seconds: float
+
+    def as_dict(self) -> dict:
+        return {"results": [r.as_dict() for r in self.rows], "checks": self.checks, "bvh": self.bvh,
+                "verdict": verdict(self.rows), "seconds": self.seconds}
+
+
+def measure(vertices, faces, ray_sets: list[RaySet], settings: LocalitySettings, leaf_size: int,
+            backend: str = "llvm", progress=None) -> LocalityRun:
+    """Every kind x treelet height x mode x warp x preset of `settings`, each replayed once; each
+    mode's trace checked against the kernel once per kind and height (settings.check).
+    `progress(done, total, label)` is called after each replay."""
+    from .bvh import build
+    t0 = time.perf_counter()
+    presets = [named_preset(p) for p in settings.presets]
+    sets = []
+    for rs in ray_sets:
+        o, d, tmax, before = sample_rays(rs.o, rs.d, rs.tmax, settings.sample, settings.seed)
+        sets.append((rs, o, d, tmax, before))
+    widths = [(pre, w) for pre in presets for w in (settings.warps or (pre.warp,))]
+    total = len(sets) * len(settings.treelet_heights) * len(settings.modes) * len(widths)
+    rows, checks, bvh_stats, done = [], [], {}, 0
+    for h in settings.treelet_heights:
+        most = max([len(s[1]) for s in sets] + [1])
+        bvh = build(vertices, faces, treelet_height=h, leaf_size=leaf_size, backend=backend, batch_rays=most)
+        bvh_stats[h] = asdict(bvh.stats)
+        for rs, o, d, tmax, before in sets:
+            for mode in settings.modes:
+                check = None
+                for pre, warp in widths:
+                    rep = replay(bvh.layout, o, d, tmax, mode, rs.any_hit, warp, pre, bvh.tail_rays, bvh.tail_fraction)
+                    if settings.check and check is None:
+                        check = check_trace(bvh, o, d, tmax, rs.any_hit, rep)
+                        checks.append({"kind": rs.kind, "treelet_height": h, **asdict(check), "exact": check.exact})
+                    rows.append(row(rs.kind, rep, h, before, check))
+                    done += 1
+                    if progress is not None:
+                        progress(done, total, f"{rs.kind} h={h} {mode} W={warp} {pre.name}")
+    return LocalityRun(rows=rows, checks=checks, bvh=bvh_stats, seconds=time.perf_counter() - t0)

@@ -1,0 +1,432 @@
+"""The exact memory trace of a traversal: a numba replay of walk.py's loop, lane by lane in the kernels' real schedule, feeding every load to the memory model."""
+from __future__ import annotations
+
+# Why a replay and not an instrumented kernel: the trace has to be read in schedule order (warp by
+# warp, iteration by iteration, across resident warps and SMs), and a Dr.Jit kernel can only append
+# its reads to a buffer in an order the threads race for, tens of bytes per lane-iteration. The
+# replay is the same loop as walk.walk, statement for statement, in float32 arithmetic that Dr.Jit's
+# LLVM backend reproduces bit for bit (measured: dr.rcp is an exact division there and products are
+# not contracted into FMAs), so its visit order is the kernel's. locality.check_trace proves it per
+# ray: hits (prim, t bits) and the work counters (inner nodes, leaves, triangles, iterations, steps)
+# equal what the kernel returned. On CUDA, rcp is approximate, so rare rays may take another order;
+# the check says how many.
+#
+# What one lane-iteration can read, in walk's order (each a separate load instruction, "site"):
+# a triangle record, its local entry-stack slot, a global entry-stack entry (two arrays), a node's
+# treelet (bounded steps), an exit's treelet root, a node record, and it writes its local stack
+# (every iteration: walk keeps local accesses outside branches, a lane that pushes nothing writes
+# the spare slot). At a warp's first iteration each lane also loads its ray (and, in a wavefront
+# step, its state). Instanced layouts are not replayed: the locality tools flatten instances.
+
+import numba
+import numpy as np
+
+from .geometry import EDGE_ERR, FAR_SCALE, MIN_RCP_INPUT
+from .layout import (EXIT_BIT, LEAF_BIT, LEAF_COUNT_SHIFT, LEAF_FIRST_MASK, NODE_BOX_HI, NODE_BOX_LO, NODE_FLOATS,
+                     NODE_LINK, PAYLOAD_MASK, POP, TRI_FACE, TRI_FLOATS, TRI_NORMAL, TRI_VERTEX, LayerLayout)
+from .memmodel import cache_access, coalesce
+
+# -- constants as plain ints/float32 (numba folds them; numpy uint32 would promote to float) ------
+_LEAF, _EXIT, _PAYLOAD = int(LEAF_BIT), int(EXIT_BIT), int(PAYLOAD_MASK)
+_FIRST, _SHIFT, _POP = int(LEAF_FIRST_MASK), LEAF_COUNT_SHIFT, int(POP)
+_FAR = np.float32(FAR_SCALE)            # Dr.Jit multiplies a Float by a Python float in float32
+_EDGE = np.float32(EDGE_ERR)
+_MIN_RCP = np.float32(MIN_RCP_INPUT)
+_LO0, _LO1, _HI0, _HI1 = NODE_BOX_LO[0], NODE_BOX_LO[1], NODE_BOX_HI[0], NODE_BOX_HI[1]
+_LK0, _LK1 = NODE_LINK
+_V0, _V1, _V2 = TRI_VERTEX
+_NRM = TRI_NORMAL // 2                  # first float64 slot of the stored normal
+
+# -- per-ray state: columns of the float32 and int64 state tables -----------------------------------
+F_O, F_D, F_INV, F_SX, F_SY, F_SZ, F_T, F_U, F_V = 0, 3, 6, 9, 10, 11, 12, 13, 14
+F_COLS = 16
+(I_KX, I_KY, I_KZ, I_PRIM, I_LINK, I_SP, I_TRELET, I_DONE, I_INNER, I_LEAF, I_TRI, I_ITER, I_STEPS,
+ I_TRI_CUR, I_TRI_END, I_NL, I_ACTIVE, I_NEXT) = range(18)
+I_COLS = 18
+
+# -- load sites (one load instruction each) ----------------------------------------------------------
+S_TRI, S_LOC_R_LINK, S_LOC_R_T, S_STACK_LINK, S_STACK_T, S_NODE_TRELET, S_TF, S_NODE, S_LOC_W_LINK, S_LOC_W_T = range(10)
+S_START = 10         # first of the per-kernel ray/state loads (StartLoads)
+SITES = 20
+SITE_NAMES = ("triangle", "local_read_link", "local_read_t", "stack_link", "stack_t", "node_treelet",
+              "treelet_root", "node", "local_write_link", "local_write_t")
+# What each site is, for the per-kind breakdown of transactions and traffic.
+CATEGORY = {"node": (S_NODE, S_NODE_TRELET, S_TF), "triangle": (S_TRI,), "stack": (S_STACK_LINK, S_STACK_T),
+            "local": (S_LOC_R_LINK, S_LOC_R_T, S_LOC_W_LINK, S_LOC_W_T)}
+# ... and the start sites are "ray".
+NO_READ = -1
+
+
+@numba.njit(cache=True, inline="always")
+def _pick(a0, a1, a2, k):
+    return a0 if k == 0 else (a1 if k == 1 else a2)
+
+
+@numba.njit(cache=True, nogil=True)
+def setup_rays(o, d, fst, ist, tmax):
+    """geometry.setup_ray for every ray (origin, reciprocal direction, Woop's shear), t = tmax."""
+    for i in range(len(o)):
+        for c in range(3):
+            fst[i, F_O + c] = o[i, c]
+            fst[i, F_D + c] = d[i, c]
+            x = d[i, c]
+            if abs(x) < _MIN_RCP:
+                x = _MIN_RCP if x >= 0 else -_MIN_RCP
+            fst[i, F_INV + c] = np.float32(1.0) / x
+        ax, ay, az = abs(d[i, 0]), abs(d[i, 1]), abs(d[i, 2])
+        kz = 0 if (ax >= ay and ax >= az) else (1 if ay >= az else 2)
+        kx = 0 if kz == 2 else kz + 1
+        ky = 0 if kx == 2 else kx + 1
+        dz = d[i, kz]
+        if dz < 0:
+            kx, ky = ky, kx
+        sz = np.float32(1.0) / dz
+        ist[i, I_KX], ist[i, I_KY], ist[i, I_KZ] = kx, ky, kz
+        fst[i, F_SX] = d[i, kx] * sz
+        fst[i, F_SY] = d[i, ky] * sz
+        fst[i, F_SZ] = sz
+        fst[i, F_T] = tmax[i]
+        fst[i, F_U] = 0
+        fst[i, F_V] = 0
+        ist[i, I_PRIM] = _POP  # MISS has the same bits
+        ist[i, I_LINK] = 0
+        ist[i, I_SP] = 0
+        ist[i, I_TRELET] = 0
+        ist[i, I_DONE] = 0
+        for c in range(I_INNER, I_STEPS + 1):
+            ist[i, c] = 0
+
+
+@numba.njit(cache=True)
+def _hit_triangle(tris_f, tris_u, tris_d, tri, fst, ist, s):
+    """geometry.hit_triangle for ray s: (hit, t, u, v, prim), the same float32/float64 steps."""
+    kx, ky, kz = ist[s, I_KX], ist[s, I_KY], ist[s, I_KZ]
+    sx, sy = fst[s, F_SX], fst[s, F_SY]
+    o0, o1, o2 = fst[s, F_O], fst[s, F_O + 1], fst[s, F_O + 2]
+    a0, a1, a2 = tris_f[tri, _V0] - o0, tris_f[tri, _V0 + 1] - o1, tris_f[tri, _V0 + 2] - o2
+    b0, b1, b2 = tris_f[tri, _V1] - o0, tris_f[tri, _V1 + 1] - o1, tris_f[tri, _V1 + 2] - o2
+    c0, c1, c2 = tris_f[tri, _V2] - o0, tris_f[tri, _V2 + 1] - o1, tris_f[tri, _V2 + 2] - o2
+    az_, bz_, cz_ = _pick(a0, a1, a2, kz), _pick(b0, b1, b2, kz), _pick(c0, c1, c2, kz)
+    ax_, ay_ = _pick(a0, a1, a2, kx) - sx * az_, _pick(a0, a1, a2, ky) - sy * az_
+    bx_, by_ = _pick(b0, b1, b2, kx) - sx * bz_, _pick(b0, b1, b2, ky) - sy * bz_
+    cx_, cy_ = _pick(c0, c1, c2, kx) - sx * cz_, _pick(c0, c1, c2, ky) - sy * cz_
+    U = cx_ * by_ - cy_ * bx_
+    V = ax_ * cy_ - ay_ * cx_
+    W = bx_ * ay_ - by_ * ax_
+    shear = abs(sx) + abs(sy)
+    mA = abs(_pick(a0, a1, a2, kx)) + abs(_pick(a0, a1, a2, ky)) + abs(az_) * shear
+    mB = abs(_pick(b0, b1, b2, kx)) + abs(_pick(b0, b1, b2, ky)) + abs(bz_) * shear
+    mC = abs(_pick(c0, c1, c2, kx)) + abs(_pick(c0, c1, c2, ky)) + abs(cz_) * shear
+    unsure_u = abs(U) <= _EDGE * (mB * mC)
+    unsure_v = abs(V) <= _EDGE * (mC * mA)
+    unsure_w = abs(W) <= _EDGE * (mA * mB)
+    if unsure_u or unsure_v or unsure_w:
+        p0, p1, p2 = np.float64(o0), np.float64(o1), np.float64(o2)
+        d0, d1, d2 = np.float64(fst[s, F_D]), np.float64(fst[s, F_D + 1]), np.float64(fst[s, F_D + 2])
+        dz64 = _pick(d0, d1, d2, kz)
+        sx64, sy64 = _pick(d0, d1, d2, kx) / dz64, _pick(d0, d1, d2, ky) / dz64
+        q = np.empty(6, np.float64)
+        for j in range(3):
+            base = (_V0, _V1, _V2)[j]
+            e0 = np.float64(tris_f[tri, base]) - p0
+            e1 = np.float64(tris_f[tri, base + 1]) - p1
+            e2 = np.float64(tris_f[tri, base + 2]) - p2
+            ez = _pick(e0, e1, e2, kz)
+            q[2 * j] = _pick(e0, e1, e2, kx) - sx64 * ez
+            q[2 * j + 1] = _pick(e0, e1, e2, ky) - sy64 * ez
+        ax, ay, bx, by, cx, cy = q[0], q[1], q[2], q[3], q[4], q[5]
+        if unsure_u:
+            U = np.float32(cx * by - cy * bx)
+        if unsure_v:
+            V = np.float32(ax * cy - ay * cx)
+        if unsure_w:
+            W = np.float32(bx * ay - by * ax)
+    outside = (U < 0 or V < 0 or W < 0) and (U > 0 or V > 0 or W > 0)
+    det = U + V + W
+    rcp = np.float32(1.0) / det if det != 0 else np.float32(np.inf)
+    t = np.float32(np.inf)
+    inside = (not outside) and det != 0
+    if inside:
+        n0, n1, n2 = tris_d[tri, _NRM], tris_d[tri, _NRM + 1], tris_d[tri, _NRM + 2]
+        nv = n0 * (np.float64(tris_f[tri, _V0]) - np.float64(o0))
+        nv = nv + n1 * (np.float64(tris_f[tri, _V0 + 1]) - np.float64(o1))
+        nv = nv + n2 * (np.float64(tris_f[tri, _V0 + 2]) - np.float64(o2))
+        nd = n0 * np.float64(fst[s, F_D]) + n1 * np.float64(fst[s, F_D + 1])
+        nd = nd + n2 * np.float64(fst[s, F_D + 2])
+        if nd != 0:
+            t = np.float32(nv / nd)
+    hit = inside and t > 0 and t < np.inf
+    return hit, t, V * rcp, W * rcp, np.int64(tris_u[tri, TRI_FACE])
+
+
+@numba.njit(cache=True, inline="always")
+def _slab(rec, lo, hi, fst, s):
+    tn, tf = np.float32(0.0), np.float32(np.inf)
+    for c in range(3):
+        o, inv = fst[s, F_O + c], fst[s, F_INV + c]
+        t0 = (rec[lo + c] - o) * inv
+        t1 = (rec[hi + c] - o) * inv
+        tn = max(tn, min(t0, t1))
+        tf = min(tf, max(t0, t1))
+    return tn, tf
+
+
+@numba.njit(cache=True)
+def iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, tris_f, tris_u, tris_d, treelet_first,
+            node_treelet, fst, ist, loc_link, loc_t, g_link, g_t, req):
+    """One iteration of walk.walk's loop for the ray in slot s (active on entry), whose local entry
+    stack is row `ls` of loc_link/loc_t (the lane it runs in). Writes the element index each load
+    site read (req[site], NO_READ for none) and updates the ray's state."""
+    for k in range(S_START):
+        req[k] = NO_READ
+    ist[s, I_ITER] += 1
+    active = True
+    link = ist[s, I_LINK]
+    # -- a triangle of the current leaf --
+    if ist[s, I_TRI_CUR] < ist[s, I_TRI_END]:
+        tri = ist[s, I_TRI_CUR]
+        req[S_TRI] = tri
+        hit, t, u, v, prim = _hit_triangle(tris_f, tris_u, tris_d, tri, fst, ist, s)
+        t_best = fst[s, F_T]
+        closer = hit and (t < t_best or (t == t_best and prim < ist[s, I_PRIM]))
+        if closer:
+            fst[s, F_T], fst[s, F_U], fst[s, F_V] = t, u, v
+            ist[s, I_PRIM] = prim
+        ist[s, I_TRI_CUR] = tri + 1
+        ist[s, I_TRI] += 1
+        if any_hit and closer:
+            ist[s, I_DONE] = 1
+            active = False
+    # -- the next entry --
+    want = active and ist[s, I_TRI_CUR] >= ist[s, I_TRI_END] and link == _POP
+    nl = ist[s, I_NL]
+    from_local = want and nl > 0
+    if from_local:
+        nl -= 1
+    req[S_LOC_R_LINK] = nl   # walk reads the local slot nl in every iteration (outside branches)
+    req[S_LOC_R_T] = nl
+    e_link, e_t = loc_link[ls, nl], loc_t[ls, nl]
+    from_global = False
+    sp = ist[s, I_SP]
+    if use_global:
+        from_global = want and not from_local and sp > 0
+        if from_global:
+            sp -= 1
+            req[S_STACK_LINK] = s * cap_g + sp
+            req[S_STACK_T] = s * cap_g + sp
+            e_link, e_t = np.int64(g_link[s, sp]), g_t[s, sp]
+    empty = want and not from_local and not from_global
+    if empty:
+        ist[s, I_DONE] = 1
+        active = False
+    if want:
+        link = e_link if (active and e_t <= fst[s, F_T] * _FAR) else _POP
+    if bounded and want and active and link != _POP and (link & _LEAF) == 0:
+        is_exit = (link & _EXIT) != 0
+        tre = (link & _PAYLOAD) if is_exit else ist[s, I_TRELET]
+        if from_global and not is_exit:
+            req[S_NODE_TRELET] = link & _PAYLOAD
+            tre = node_treelet[link & _PAYLOAD]
+        if tre != ist[s, I_TRELET]:
+            ist[s, I_NEXT] = tre
+            active = False
+    # -- a node: both children; on with the nearer, push the farther --
+    push = False
+    far_link, far_t = np.int64(0), np.float32(0.0)
+    if active and ist[s, I_TRI_CUR] >= ist[s, I_TRI_END] and link != _POP and (link & _LEAF) == 0:
+        payload = link & _PAYLOAD
+        node = payload
+        if (link & _EXIT) != 0:
+            req[S_TF] = payload
+            node = treelet_first[payload]
+        req[S_NODE] = node
+        rec = nodes_f[node]
+        t_best = fst[s, F_T]
+        tn_l, tf_l = _slab(rec, _LO0, _HI0, fst, s)
+        tn_r, tf_r = _slab(rec, _LO1, _HI1, fst, s)
+        hit_l = tn_l <= tf_l * _FAR and tn_l <= t_best * _FAR
+        hit_r = tn_r <= tf_r * _FAR and tn_r <= t_best * _FAR
+        link_l, link_r = np.int64(nodes_u[node, _LK0]), np.int64(nodes_u[node, _LK1])
+        ist[s, I_INNER] += 1
+        right_first = hit_r and ((not hit_l) or tn_r < tn_l)
+        push = hit_l and hit_r
+        far_link, far_t = (link_l, tn_l) if right_first else (link_r, tn_r)
+        link = (link_r if right_first else link_l) if (hit_l or hit_r) else _POP
+        if bounded and link != _POP and (link & _LEAF) == 0 and (link & _EXIT) != 0:
+            ist[s, I_NEXT] = link & _PAYLOAD
+            active = False
+    slot = nl if push else cap
+    req[S_LOC_W_LINK] = slot
+    req[S_LOC_W_T] = slot
+    loc_link[ls, slot] = far_link
+    loc_t[ls, slot] = far_t
+    if push:
+        nl += 1
+    # -- a leaf: its triangles from the next iteration on --
+    if active and link != _POP and (link & _LEAF) != 0:
+        ist[s, I_TRI_CUR] = link & _FIRST
+        ist[s, I_TRI_END] = (link & _FIRST) + ((link & 0x7FFFFFFF) >> _SHIFT)
+        link = _POP
+        ist[s, I_LEAF] += 1
+    ist[s, I_LINK] = link
+    ist[s, I_SP] = sp
+    ist[s, I_NL] = nl
+    ist[s, I_ACTIVE] = 1 if active else 0
+
+
+@numba.njit(cache=True)
+def _start_lane(s, ist):
+    """What walk sets up per call: an empty local stack, no leaf at hand, the step's treelet."""
+    ist[s, I_TRI_CUR] = 0
+    ist[s, I_TRI_END] = 0
+    ist[s, I_NL] = 0
+    ist[s, I_ACTIVE] = 1
+    ist[s, I_NEXT] = ist[s, I_TRELET]
+    ist[s, I_STEPS] += 1
+
+
+@numba.njit(cache=True, inline="always")
+def _write_back(s, ls, ist, loc_link, loc_t, g_link, g_t):
+    """wavefront.trace's write-back for one ray whose step ended: the entries it pushed in the step
+    go above its global stack (done as the lane ends, not after the kernel: nothing else reads that
+    ray's stack in between, and so the local stacks are per lane, not per ray). Returns how many."""
+    nl = ist[s, I_NL]
+    sp = ist[s, I_SP]
+    for k in range(nl):
+        g_link[s, sp + k] = np.uint32(loc_link[ls, k])
+        g_t[s, sp + k] = loc_t[ls, k]
+    ist[s, I_SP] = sp + nl
+    return nl
+
+
+def local_stack_rows(units: int, resident: int, warp: int) -> int:
+    """Rows of the replay's local entry stacks: one per lane a unit can hold at once."""
+    return units * resident * warp
+
+
+@numba.njit(cache=True, nogil=True)
+def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap, any_hit, cap_g,
+               nodes_f, nodes_u, tris_f, tris_u, tris_d, treelet_first, node_treelet,
+               fst, ist, loc_link, loc_t, g_link, g_t,
+               site_base, site_bytes, site_local, start_sites, start_by_pos, seg_bytes,
+               tags, stamps, params, counts, clock, tally, levels_hit, lanes_out):
+    """One kernel launch over the rays `order` (slots, in the launch's order), lane j in warp j // W.
+
+    Warps go to units (SMs, cores) a block of `block_warps` at a time, round-robin; each unit keeps
+    `resident` warps and runs them round-robin, one loop iteration per turn; units take turns too, so
+    the shared cache level sees their requests interleaved. Every warp-iteration's loads are coalesced
+    per site into segments (transactions), and each transaction is one access to the cache model.
+    tally[site] += (transactions, lane requests); levels_hit[site, level] += transactions served by
+    that level (last column: DRAM); lanes_out += (warp-iterations, active lane-iterations, entries
+    written back). In a bounded step (a wavefront step) each ray's pushed entries are written back
+    to its global stack when its lane ends."""
+    n = len(order)
+    n_warps = (n + W - 1) // W
+    # Each unit's warps, in launch order.
+    unit_of = np.empty(n_warps, np.int64)
+    for w in range(n_warps):
+        unit_of[w] = (w // block_warps) % units
+    queue = np.argsort(unit_of, kind="mergesort")
+    q_start = np.zeros(units + 1, np.int64)
+    for w in range(n_warps):
+        q_start[unit_of[w] + 1] += 1
+    for u in range(units):
+        q_start[u + 1] += q_start[u]
+    q_next = q_start[:-1].copy()
+    res_warp = np.full((units, resident), -1, np.int64)
+    req = np.empty((W, SITES), np.int64)
+    act = np.zeros(W, np.bool_)
+    addr = np.empty(W, np.int64)
+    segs = np.empty(W * 8, np.int64)
+    n_levels = levels_hit.shape[1] - 1
+    n_start = len(start_sites)
+    remaining = n_warps
+    while remaining > 0:
+        for u in range(units):
+            for r in range(resident):
+                w = res_warp[u, r]
+                fresh = False
+                if w < 0:
+                    if q_next[u] >= q_start[u + 1]:
+                        continue
+                    w = queue[q_next[u]]
+                    q_next[u] += 1
+                    res_warp[u, r] = w
+                    fresh = True
+                slot_id = u * resident + r   # local memory is reused by the warp that takes the slot next
+                lo = w * W
+                hi = min(n, lo + W)
+                live = 0
+                for j in range(W):
+                    act[j] = False
+                for j in range(hi - lo):
+                    s = order[lo + j]
+                    for k in range(SITES):
+                        req[j, k] = NO_READ
+                    if fresh:
+                        _start_lane(s, ist)
+                        for k in range(n_start):  # the ray (and its state) at the kernel's start
+                            req[j, S_START + k] = (lo + j) if start_by_pos[k] else s
+                    if ist[s, I_ACTIVE] == 0:
+                        continue
+                    act[j] = True
+                    live += 1
+                    ls = slot_id * W + j
+                    iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, tris_f, tris_u, tris_d,
+                            treelet_first, node_treelet, fst, ist, loc_link, loc_t, g_link, g_t, req[j])
+                    if bounded and ist[s, I_ACTIVE] == 0:
+                        lanes_out[2] += _write_back(s, ls, ist, loc_link, loc_t, g_link, g_t)
+                lanes_out[0] += 1
+                lanes_out[1] += live
+                for k in range(S_START + n_start):
+                    size = site_bytes[k]
+                    any_req = False
+                    for j in range(W):
+                        e = req[j, k] if act[j] else NO_READ
+                        if e < 0:
+                            addr[j] = -1
+                        else:
+                            any_req = True
+                            tally[k, 1] += 1
+                            if site_local[k]:   # interleaved per warp: lane j's word e
+                                addr[j] = site_base[k] + ((slot_id * (cap + 1) + e) * W + j) * size
+                            else:
+                                addr[j] = site_base[k] + e * size
+                    if not any_req:
+                        continue
+                    m = coalesce(addr, act, W, size, seg_bytes, segs)
+                    tally[k, 0] += m
+                    for i in range(m):
+                        lvl = cache_access(tags, stamps, params, counts, clock, u, segs[i] * seg_bytes)
+                        levels_hit[k, min(lvl, n_levels)] += 1
+                still = False
+                for j in range(hi - lo):
+                    if ist[order[lo + j], I_ACTIVE] != 0:
+                        still = True
+                        break
+                if not still:
+                    res_warp[u, r] = -1
+                    remaining -= 1
+
+
+@numba.njit(cache=True)
+def next_treelets(order, ist, finished):
+    """The sort key of each ray after a step: the treelet it enters next, `finished` when done."""
+    keys = np.empty(len(order), np.int64)
+    for j in range(len(order)):
+        s = order[j]
+        if ist[s, I_DONE] != 0:
+            keys[j] = finished
+        else:
+            keys[j] = ist[s, I_NEXT]
+            ist[s, I_TRELET] = ist[s, I_NEXT]
+    return keys
+
+
+def layout_views(lay: LayerLayout):
+    """The layout's records as the replay reads them: node float32/uint32 rows, triangle
+    float32/uint32/float64 rows, treelet roots, node treelets."""
+    nodes = lay.nodes.reshape(-1, NODE_FLOATS)
+    tris = np.ascontiguousarray(lay.tris.reshape(-1, TRI_FLOATS))
+    return (nodes, nodes.view(np.uint32), tris, tris.view(np.uint32), tris.view(np.float64),
+            lay.treelet_first.astype(np.int64), lay.node_treelet.astype(np.int64))
