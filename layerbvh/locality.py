@@ -1,7 +1,9 @@
 """The locality model: a traversal's exact memory trace (memtrace) per mode, run through the coalescing and cache model (memmodel) for a warp width and a hardware preset, checked against the kernel, reduced to one row of numbers."""
 from __future__ import annotations
 
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -226,6 +228,14 @@ def check_trace(bvh, o, d, tmax, any_hit: bool, rep: ReplayResult) -> TraceCheck
     return TraceCheck(mode=rep.mode, rays=len(rep.prim), hit_mismatches=hits, work_mismatches=mism)
 
 
+def _same_as(rep: ReplayResult, check: TraceCheck, ref: ReplayResult) -> TraceCheck:
+    """`check` (of `ref`, the same mode under another schedule) for `rep`: the kernel's mismatches
+    plus the rays where `rep` differs from `ref`."""
+    hits = int(np.count_nonzero((rep.prim != ref.prim) | (rep.t.view(np.uint32) != ref.t.view(np.uint32))))
+    work = {k: check.work_mismatches[k] + int(np.count_nonzero(rep.work[k] != ref.work[k])) for k in rep.work}
+    return TraceCheck(mode=rep.mode, rays=check.rays, hit_mismatches=check.hit_mismatches + hits, work_mismatches=work)
+
+
 # -- one row of numbers ------------------------------------------------------------------------------
 @dataclass
 class LocalityRow:
@@ -333,6 +343,7 @@ class LocalitySettings:
     sample: int | None = None       # at most this many rays per kind (uniform; None: all)
     seed: int = 0
     check: bool = True              # compare each mode's trace with the kernel (once per kind, height)
+    threads: int | None = None      # replays run at once (numba releases the GIL); None: the CPU count
 
 
 def verdict(rows: list[LocalityRow]) -> list[str]:
@@ -405,15 +416,29 @@ def measure(vertices, faces, ray_sets: list[RaySet], settings: LocalitySettings,
         bvh = build(vertices, faces, treelet_height=h, leaf_size=leaf_size, backend=backend, batch_rays=most)
         bvh_stats[h] = asdict(bvh.stats)
         for rs, o, d, tmax, before in sets:
-            for mode in settings.modes:
-                check = None
-                for pre, warp in widths:
-                    rep = replay(bvh.layout, o, d, tmax, mode, rs.any_hit, warp, pre, bvh.tail_rays, bvh.tail_fraction)
-                    if settings.check and check is None:
-                        check = check_trace(bvh, o, d, tmax, rs.any_hit, rep)
-                        checks.append({"kind": rs.kind, "treelet_height": h, **asdict(check), "exact": check.exact})
-                    rows.append(row(rs.kind, rep, h, before, check))
+            configs = [(mode, pre, warp) for mode in settings.modes for pre, warp in widths]
+
+            def one(config, rs=rs, o=o, d=d, tmax=tmax):
+                mode, pre, warp = config
+                return replay(bvh.layout, o, d, tmax, mode, rs.any_hit, warp, pre, bvh.tail_rays, bvh.tail_fraction)
+            with ThreadPoolExecutor(max_workers=settings.threads or os.cpu_count() or 1) as pool:
+                reps = []
+                for config, rep in zip(configs, pool.map(one, configs)):
+                    reps.append(rep)
                     done += 1
                     if progress is not None:
-                        progress(done, total, f"{rs.kind} h={h} {mode} W={warp} {pre.name}")
+                        progress(done, total, f"{rs.kind} h={h} {config[0]} W={config[2]} {config[1].name}")
+            checked, check = {}, None
+            for rep in reps:  # the kernel traces each mode once; every other schedule of that mode
+                # must give the same hits and work per ray (a lane's state leaking into another would not)
+                if settings.check and rep.mode not in checked:
+                    checked[rep.mode] = (check_trace(bvh, o, d, tmax, rs.any_hit, rep), rep)
+                    check = checked[rep.mode][0]
+                    checks.append({"kind": rs.kind, "treelet_height": h, **asdict(check), "exact": check.exact})
+                elif settings.check:
+                    check = _same_as(rep, *checked[rep.mode])
+                    if not check.exact:
+                        checks.append({"kind": rs.kind, "treelet_height": h, **asdict(check), "exact": False,
+                                       "schedule": f"W={rep.warp} {rep.preset.name}"})
+                rows.append(row(rs.kind, rep, h, before, check if settings.check else None))
     return LocalityRun(rows=rows, checks=checks, bvh=bvh_stats, seconds=time.perf_counter() - t0)

@@ -176,9 +176,11 @@ def iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, t
             node_treelet, fst, ist, loc_link, loc_t, g_link, g_t, req):
     """One iteration of walk.walk's loop for the ray in slot s (active on entry), whose local entry
     stack is row `ls` of loc_link/loc_t (the lane it runs in). Writes the element index each load
-    site read (req[site], NO_READ for none) and updates the ray's state."""
+    site read (req[site], NO_READ for none) and updates the ray's state. Returns the sites it read
+    as a bit mask (bit k: site k)."""
     for k in range(S_START):
         req[k] = NO_READ
+    used = (1 << S_LOC_R_LINK) | (1 << S_LOC_R_T) | (1 << S_LOC_W_LINK) | (1 << S_LOC_W_T)
     ist[s, I_ITER] += 1
     active = True
     link = ist[s, I_LINK]
@@ -186,6 +188,7 @@ def iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, t
     if ist[s, I_TRI_CUR] < ist[s, I_TRI_END]:
         tri = ist[s, I_TRI_CUR]
         req[S_TRI] = tri
+        used |= 1 << S_TRI
         hit, t, u, v, prim = _hit_triangle(tris_f, tris_u, tris_d, tri, fst, ist, s)
         t_best = fst[s, F_T]
         closer = hit and (t < t_best or (t == t_best and prim < ist[s, I_PRIM]))
@@ -214,6 +217,7 @@ def iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, t
             sp -= 1
             req[S_STACK_LINK] = s * cap_g + sp
             req[S_STACK_T] = s * cap_g + sp
+            used |= (1 << S_STACK_LINK) | (1 << S_STACK_T)
             e_link, e_t = np.int64(g_link[s, sp]), g_t[s, sp]
     empty = want and not from_local and not from_global
     if empty:
@@ -226,6 +230,7 @@ def iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, t
         tre = (link & _PAYLOAD) if is_exit else ist[s, I_TRELET]
         if from_global and not is_exit:
             req[S_NODE_TRELET] = link & _PAYLOAD
+            used |= 1 << S_NODE_TRELET
             tre = node_treelet[link & _PAYLOAD]
         if tre != ist[s, I_TRELET]:
             ist[s, I_NEXT] = tre
@@ -238,8 +243,10 @@ def iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, t
         node = payload
         if (link & _EXIT) != 0:
             req[S_TF] = payload
+            used |= 1 << S_TF
             node = treelet_first[payload]
         req[S_NODE] = node
+        used |= 1 << S_NODE
         rec = nodes_f[node]
         t_best = fst[s, F_T]
         tn_l, tf_l = _slab(rec, _LO0, _HI0, fst, s)
@@ -272,6 +279,7 @@ def iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, t
     ist[s, I_SP] = sp
     ist[s, I_NL] = nl
     ist[s, I_ACTIVE] = 1 if active else 0
+    return used
 
 
 @numba.njit(cache=True)
@@ -357,28 +365,32 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
                 lo = w * W
                 hi = min(n, lo + W)
                 live = 0
+                used = 0
                 for j in range(W):
                     act[j] = False
                 for j in range(hi - lo):
                     s = order[lo + j]
-                    for k in range(SITES):
+                    for k in range(S_START, S_START + n_start):  # iterate() resets the others
                         req[j, k] = NO_READ
                     if fresh:
                         _start_lane(s, ist)
                         for k in range(n_start):  # the ray (and its state) at the kernel's start
                             req[j, S_START + k] = (lo + j) if start_by_pos[k] else s
+                            used |= 1 << (S_START + k)
                     if ist[s, I_ACTIVE] == 0:
                         continue
                     act[j] = True
                     live += 1
                     ls = slot_id * W + j
-                    iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, tris_f, tris_u, tris_d,
+                    used |= iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, tris_f, tris_u, tris_d,
                             treelet_first, node_treelet, fst, ist, loc_link, loc_t, g_link, g_t, req[j])
                     if bounded and ist[s, I_ACTIVE] == 0:
                         lanes_out[2] += _write_back(s, ls, ist, loc_link, loc_t, g_link, g_t)
                 lanes_out[0] += 1
                 lanes_out[1] += live
                 for k in range(S_START + n_start):
+                    if (used >> k) & 1 == 0:
+                        continue
                     size = site_bytes[k]
                     any_req = False
                     for j in range(W):
