@@ -179,6 +179,8 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
             order = order[keep]
             n_active -= done
 
+    # Every transaction reached L1 once: a cache_access that refused its input (-1) would not count.
+    assert counts[0].sum() == tally[:, 0].sum() == levels_hit.sum(), "the cache model lost transactions"
     prim = np.full(n_all, MISS, np.int64)
     t = np.full(n_all, np.inf, np.float32)
     valid = np.zeros(n_all, bool)
@@ -346,28 +348,69 @@ class LocalitySettings:
     threads: int | None = None      # replays run at once (numba releases the GIL); None: the CPU count
 
 
+def _ratio(a: float, b: float) -> float:
+    return a / b if b else float("nan")
+
+
 def verdict(rows: list[LocalityRow]) -> list[str]:
-    """One sentence per (kind, preset, warp, treelet height): does sorting by treelet cut what
-    the traversal costs the memory system, once its own traffic is paid?"""
+    """One sentence per (kind, preset, warp, treelet height): what sorting does to the traversal's
+    node and triangle traffic (the paper's claim), to all of its kernels' DRAM traffic, and to the
+    memory bus once the steps' own traffic is paid."""
     out = []
-    key = (lambda r: (r.kind, r.preset, r.warp, r.treelet_height))
-    groups: dict = {}
-    for r in rows:
-        groups.setdefault(key(r), {})[r.mode] = r
-    for (kind, pre, warp, h), g in groups.items():
+    for (kind, pre, warp, h), g in _groups(rows, lambda r: (r.kind, r.preset, r.warp, r.treelet_height)).items():
         if "per_ray" not in g or "layer_sorted" not in g:
             continue
         p, s = g["per_ray"], g["layer_sorted"]
-        tx = s.transactions_per_ray / p.transactions_per_ray if p.transactions_per_ray else float("nan")
-        dr = s.dram_bytes_per_ray / p.dram_bytes_per_ray if p.dram_bytes_per_ray else float("nan")
-        tot = s.total_dram_bytes_per_ray / p.dram_bytes_per_ray if p.dram_bytes_per_ray else float("nan")
-        wins = tot < 1.0
+        nt = _ratio(s.node_dram_bytes_per_ray + s.triangle_dram_bytes_per_ray,
+                    p.node_dram_bytes_per_ray + p.triangle_dram_bytes_per_ray)
         out.append(
-            f"{kind}, {pre}, W={warp}, H={h}: sorted traversal kernels issue {tx:.2f}x per_ray's transactions and "
-            f"read {dr:.2f}x its DRAM bytes (L1 hit rate {s.l1_hit_rate:.2f} vs {p.l1_hit_rate:.2f}); with the "
-            f"{s.sort_bytes_per_ray:.0f} B/ray the steps move between kernels, {tot:.2f}x: sorting "
-            + ("wins on memory traffic." if wins else "does not pay for itself in memory traffic."))
+            f"{kind}, {pre}, W={warp}, H={h}: sorted steps issue {_ratio(s.node_transactions_per_ray, p.node_transactions_per_ray):.2f}x "
+            f"per_ray's node transactions (SIMD efficiency {s.simd_efficiency:.2f} vs {p.simd_efficiency:.2f}) and read "
+            f"{nt:.2f}x its node and triangle bytes from DRAM; all kernel reads {_ratio(s.dram_bytes_per_ray, p.dram_bytes_per_ray):.2f}x, "
+            f"with the {s.sort_bytes_per_ray:.0f} B/ray moved between steps "
+            f"{_ratio(s.total_dram_bytes_per_ray, p.dram_bytes_per_ray):.2f}x: sorting "
+            + ("wins on memory traffic." if s.total_dram_bytes_per_ray < p.dram_bytes_per_ray
+               else "does not pay for itself in memory traffic."))
     return out
+
+
+def preset_verdict(rows: list[LocalityRow]) -> dict:
+    """One sentence per preset over every kind of rays (at the preset's first warp width and
+    treelet height in `rows`): the verdict BENCHMARKS.md states per scene and preset."""
+    out = {}
+    for pre in dict.fromkeys(r.preset for r in rows):
+        mine = [r for r in rows if r.preset == pre]
+        warp, h = mine[0].warp, mine[0].treelet_height
+        kinds = _groups([r for r in mine if r.warp == warp and r.treelet_height == h], lambda r: r.kind)
+        nt, tot = {}, {}
+        for kind, g in kinds.items():
+            if "per_ray" in g and "layer_sorted" in g:
+                p, s = g["per_ray"], g["layer_sorted"]
+                nt[kind] = _ratio(s.node_dram_bytes_per_ray + s.triangle_dram_bytes_per_ray,
+                                  p.node_dram_bytes_per_ray + p.triangle_dram_bytes_per_ray)
+                tot[kind] = _ratio(s.total_dram_bytes_per_ray, p.dram_bytes_per_ray)
+        if not nt:
+            continue
+        gain = [k for k, v in nt.items() if v < 0.9]
+        wins = [k for k, v in tot.items() if v < 1.0]
+        span = (lambda d: f"{min(d.values()):.2f}-{max(d.values()):.2f}x")
+        out[pre] = (
+            f"{pre} (W={warp}, H={h}): sorting "
+            + (f"cuts the node and triangle bytes read from DRAM on {', '.join(f'{k} ({nt[k]:.2f}x)' for k in gain)}"
+               if gain else f"does not cut the node and triangle bytes read from DRAM ({span(nt)} of per_ray's)")
+            + f"; counting the ray state, entry stacks and the traffic between steps, the sorted path moves "
+              f"{span(tot)} per_ray's DRAM bytes, so "
+            + (f"it wins on memory traffic for {', '.join(wins)}." if wins else
+               "it does not pay for itself in memory traffic on any kind of rays."))
+    return out
+
+
+def _groups(rows, key) -> dict:
+    """rows grouped by key(row), each group {mode: row}."""
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault(key(r), {})[r.mode] = r
+    return groups
 
 
 @dataclass
@@ -393,7 +436,7 @@ class LocalityRun:
 
     def as_dict(self) -> dict:
         return {"results": [r.as_dict() for r in self.rows], "checks": self.checks, "bvh": self.bvh,
-                "verdict": verdict(self.rows), "seconds": self.seconds}
+                "verdict": verdict(self.rows), "preset_verdict": preset_verdict(self.rows), "seconds": self.seconds}
 
 
 def measure(vertices, faces, ray_sets: list[RaySet], settings: LocalitySettings, leaf_size: int,

@@ -343,7 +343,8 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
     q_next = q_start[:-1].copy()
     res_warp = np.full((units, resident), -1, np.int64)
     req = np.empty((W, SITES), np.int64)
-    act = np.zeros(W, np.bool_)
+    lane = np.empty(W, np.int64)
+    every = np.ones(W, np.bool_)
     addr = np.empty(W, np.int64)
     segs = np.empty(W * 8, np.int64)
     n_levels = levels_hit.shape[1] - 1
@@ -364,27 +365,29 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
                 slot_id = u * resident + r   # local memory is reused by the warp that takes the slot next
                 lo = w * W
                 hi = min(n, lo + W)
-                live = 0
+                live = 0        # lanes that run this iteration: lane[0 .. live)
+                going = 0       # ... and are still active after it
                 used = 0
-                for j in range(W):
-                    act[j] = False
                 for j in range(hi - lo):
                     s = order[lo + j]
+                    if fresh:
+                        _start_lane(s, ist)
+                    if ist[s, I_ACTIVE] == 0:
+                        continue
+                    lane[live] = j
+                    live += 1
+                    ls = slot_id * W + j
                     for k in range(S_START, S_START + n_start):  # iterate() resets the others
                         req[j, k] = NO_READ
                     if fresh:
-                        _start_lane(s, ist)
                         for k in range(n_start):  # the ray (and its state) at the kernel's start
                             req[j, S_START + k] = (lo + j) if start_by_pos[k] else s
                             used |= 1 << (S_START + k)
-                    if ist[s, I_ACTIVE] == 0:
-                        continue
-                    act[j] = True
-                    live += 1
-                    ls = slot_id * W + j
-                    used |= iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, tris_f, tris_u, tris_d,
-                            treelet_first, node_treelet, fst, ist, loc_link, loc_t, g_link, g_t, req[j])
-                    if bounded and ist[s, I_ACTIVE] == 0:
+                    used |= iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, tris_f, tris_u,
+                                    tris_d, treelet_first, node_treelet, fst, ist, loc_link, loc_t, g_link, g_t, req[j])
+                    if ist[s, I_ACTIVE] != 0:
+                        going += 1
+                    elif bounded:
                         lanes_out[2] += _write_back(s, ls, ist, loc_link, loc_t, g_link, g_t)
                 lanes_out[0] += 1
                 lanes_out[1] += live
@@ -392,30 +395,28 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
                     if (used >> k) & 1 == 0:
                         continue
                     size = site_bytes[k]
-                    any_req = False
-                    for j in range(W):
-                        e = req[j, k] if act[j] else NO_READ
+                    n_req = 0
+                    for i in range(live):
+                        j = lane[i]
+                        e = req[j, k]
                         if e < 0:
-                            addr[j] = -1
+                            continue
+                        if site_local[k]:   # interleaved per warp: lane j's word e
+                            addr[n_req] = site_base[k] + ((slot_id * (cap + 1) + e) * W + j) * size
                         else:
-                            any_req = True
-                            tally[k, 1] += 1
-                            if site_local[k]:   # interleaved per warp: lane j's word e
-                                addr[j] = site_base[k] + ((slot_id * (cap + 1) + e) * W + j) * size
-                            else:
-                                addr[j] = site_base[k] + e * size
-                    if not any_req:
+                            addr[n_req] = site_base[k] + e * size
+                        n_req += 1
+                    if n_req == 0:
                         continue
-                    m = coalesce(addr, act, W, size, seg_bytes, segs)
+                    tally[k, 1] += n_req
+                    m = coalesce(addr, every, n_req, size, seg_bytes, segs)
                     tally[k, 0] += m
                     for i in range(m):
+                        # cache_access answers -1 only for a negative address or a unit out of range,
+                        # which this loop never makes; replay() checks the counts add up.
                         lvl = cache_access(tags, stamps, params, counts, clock, u, segs[i] * seg_bytes)
                         levels_hit[k, min(lvl, n_levels)] += 1
-                still = False
-                for j in range(hi - lo):
-                    if ist[order[lo + j], I_ACTIVE] != 0:
-                        still = True
-                        break
+                still = going > 0
                 if not still:
                     res_warp[u, r] = -1
                     remaining -= 1

@@ -140,6 +140,7 @@ def merge_bench(out: Path, points, results, command: str) -> None:
 def merge_locality(out: Path, points, results, command: str) -> None:
     """locality.json: every point's rows (each with its scene), checks and verdict sentences, for
     scripts/report.py's locality section."""
+    from .sweep import short_name
     docs = []
     for p, r in zip(points, results):
         if p.job == "locality" and r is not None and r["status"] == "ok":
@@ -147,15 +148,17 @@ def merge_locality(out: Path, points, results, command: str) -> None:
             docs.append((p, doc))
     if not docs:
         return
-    scene = (lambda p: Path(p.name).name)
+    scene = (lambda p: short_name(p.name))
     merged = {"command": command,
               "results": [{**row, "scene": scene(p), "triangles": d["triangles"]} for p, d in docs for row in d["results"]],
               "checks": [{**c, "scene": scene(p)} for p, d in docs for c in d["checks"]],
               "verdict": [f"{scene(p)}: {v}" for p, d in docs for v in d["verdict"]],
               "presets": {k: v for _, d in docs for k, v in d["presets"].items()},
               "preset_lines": list(dict.fromkeys(line for _, d in docs for line in d["preset_lines"])),
-              "scenes": {scene(p): {k: d[k] for k in ("resolution", "spp", "triangles", "kinds", "sampled")}
-                         for p, d in docs}}
+              "scenes": {}, "machine": docs[0][1].get("machine")}
+    for p, d in docs:  # one point per kind: a scene's kinds come from several points
+        info = merged["scenes"].setdefault(scene(p), {k: d[k] for k in ("resolution", "spp", "triangles", "sampled")})
+        info.setdefault("kinds", {}).update(d["kinds"])
     atomic.write_text(out / "locality.json", json.dumps(merged, indent=1))
 
 

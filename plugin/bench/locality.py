@@ -118,9 +118,26 @@ def measure_scene(mi, req: LocalityRequest, progress: bool = True) -> dict:
         "kinds": {k: {"recorded": int(len(rays[k][0])), "traced": meta["kinds"][k]["traced"]} for k in req.kinds if k in rays},
         "kinds_missing": missing, "sampled": req.sample,
         "presets": {p: named_preset(p).as_dict() for p in req.presets},
+        "machine": machine(),
         "preset_lines": [named_preset(p).describe() for p in req.presets],
     })
     return doc
+
+
+def machine() -> dict:
+    """Where the model ran (its numbers do not depend on it, its run time and the cpu preset do)."""
+    import os
+
+    from layerbvh.backend import cpu_model, llvm_vector_width
+    return {"cpu": cpu_model(), "cores": os.cpu_count(), "llvm_vector_width": llvm_vector_width()}
+
+
+def rows_of(doc: dict, scene: str | None = None) -> list:
+    """A locality.json's rows (of one scene, in a sweep's merged document) as LocalityRows."""
+    from layerbvh.locality import LocalityRow
+    names = set(LocalityRow.__dataclass_fields__)
+    return [LocalityRow(**{k: v for k, v in r.items() if k in names}) for r in doc["results"]
+            if scene is None or r.get("scene") == scene]
 
 
 def headline(doc: dict) -> dict:
@@ -141,6 +158,78 @@ def headline(doc: dict) -> dict:
 
 
 # -- outputs ------------------------------------------------------------------------------------------
+
+MEANING = (
+    "What the numbers mean: every read of the traversal kernels (node and triangle records, entry "
+    "stacks, the ray and its state at the start of a kernel, the local stack) is replayed from an exact "
+    "trace of the kernel's own loop, lane by lane in the order the kernels run: `per_ray` warps are W "
+    "consecutive rays, wavefront steps' warps W consecutive rays of that step's sorted (or unsorted) "
+    "order. A warp's load is one transaction per distinct segment its lanes touch (coalescing); each "
+    "transaction goes through set-associative LRU caches (one L1 per SM or core, a shared L2, and the "
+    "CPU's L3) with resident warps interleaved round-robin. DRAM bytes are what the last level misses; "
+    "'between steps' is what a wavefront step moves outside its kernel (state out, entry write-back, keys, "
+    "the sort, the permutation), counted as DRAM traffic. The model leaves out instruction costs, latency "
+    "hiding, write traffic inside the kernels, prefetching and the real replacement policies; on CUDA, "
+    "where rcp is approximate, a few rays may take another path than the LLVM kernel the trace is checked "
+    "against.")
+
+
+def table_compact(rows: list) -> str:
+    """Per kind and mode: the figures BENCHMARKS.md shows."""
+    cols = ("kind", "mode", "rays", "node tx/ray", "SIMD eff.", "L1 hit", "L2 hit", "node+tri DRAM B/ray",
+            "kernel DRAM B/ray", "between steps B/ray", "total B/ray")
+    out = "| " + " | ".join(cols) + " |\n|" + "---|" * len(cols) + "\n"
+    for r in rows:
+        out += (f"| {r.kind} | {r.mode} | {r.rays:,} | {r.node_transactions_per_ray:.1f} | {r.simd_efficiency:.2f} | "
+                f"{r.l1_hit_rate:.2f} | {r.l2_hit_rate:.2f} | "
+                f"{r.node_dram_bytes_per_ray + r.triangle_dram_bytes_per_ray:.0f} | {r.dram_bytes_per_ray:.0f} | "
+                f"{r.sort_bytes_per_ray:.0f} | {r.total_dram_bytes_per_ray:.0f} |\n")
+    return out
+
+
+def benchmarks_section(doc: dict, fig_rel: str) -> str:
+    """BENCHMARKS.md's locality section from a locality.json (one scene, or a sweep's merged
+    document): the command, the machine, the presets, then per scene its verdict per preset, a
+    table per preset and the plot (fig_rel/locality_SCENE.png, written by write_figures)."""
+    from layerbvh.locality import preset_verdict
+    m = doc.get("machine") or {}
+    parts = ["## Locality: memory transactions and cache hits (`layerbvh locality`)", "", MEANING, "",
+             f"Command: `{doc['command']}`" + (f" ({m.get('cpu')}, {m.get('cores')} cores, Dr.Jit LLVM "
+                                                f"{m.get('llvm_vector_width')} lanes)" if m else ""), "",
+             "Presets:", ""] + [f"- {line}" for line in doc["preset_lines"]] + [""]
+    for scene in _scenes(doc):
+        rows = rows_of(doc, scene if "scenes" in doc else None)
+        info = doc["scenes"][scene] if "scenes" in doc else doc
+        kinds = ", ".join(f"{k} {v['recorded']:,}" for k, v in info["kinds"].items())
+        exact = all(c["exact"] for c in doc["checks"] if c.get("scene", scene) == scene)
+        parts += [f"### {scene} ({info['triangles']:,} triangles)", "",
+                  f"Rays recorded at {info['resolution'][0]}x{info['resolution'][1]}, {info['spp']} spp: {kinds}"
+                  + (f", each sampled to at most {info['sampled']:,}" if info.get("sampled") else "") + ". Trace "
+                  + ("checked against the kernel: every ray's hit and work counts equal." if exact else
+                     "check FAILED on some rays: see the run's summary.md."), ""]
+        parts += [f"- {v}" for v in preset_verdict(rows).values()] + [""]
+        for pre in dict.fromkeys(r.preset for r in rows):
+            mine = [r for r in rows if r.preset == pre]
+            parts += [f"{pre}, W={mine[0].warp}, H={mine[0].treelet_height}:", "",
+                      table_compact([r for r in mine if r.warp == mine[0].warp
+                                     and r.treelet_height == mine[0].treelet_height])]
+        parts += [f"![DRAM bytes per ray]({fig_rel}/locality_{_slug(scene)}.png)", ""]
+    return "\n".join(parts)
+
+
+def _scenes(doc: dict) -> list:
+    return list(doc["scenes"]) if "scenes" in doc else [Path(doc["scene"]).name]
+
+
+def _slug(scene: str) -> str:
+    return Path(scene).stem if Path(scene).stem != "scene" else Path(scene).parent.name or "scene"
+
+
+def write_figures(doc: dict, folder) -> None:
+    """locality_SCENE.png of every scene of the document."""
+    for scene in _scenes(doc):
+        sub = {**doc, "scene": scene, "results": [r for r in doc["results"] if r.get("scene", scene) == scene]}
+        atomic.write_bytes(Path(folder) / f"locality_{_slug(scene)}.png", plot_png(sub))
 
 
 def plot_png(doc: dict) -> bytes:
@@ -228,7 +317,8 @@ def summary_md(doc: dict, command: str) -> str:
              + (f" (each sampled to at most {doc['sampled']:,})" if doc["sampled"] else "") + ".",
              f"Trace check: {check}.", "", "Presets:", ""]
     lines += [f"- {p}" for p in doc["preset_lines"]]
-    lines += ["", "## Verdict", ""] + [f"- {v}" for v in doc["verdict"]] + ["", "## Rows", "", table_md(doc["results"])]
+    lines += ["", "## Verdict", ""] + [f"- {v}" for v in doc["preset_verdict"].values()]
+    lines += ["", "Per kind of rays:", ""] + [f"- {v}" for v in doc["verdict"]] + ["", "## Rows", "", table_md(doc["results"])]
     return "\n".join(lines)
 
 
@@ -247,7 +337,7 @@ def run(mi, args, command: str) -> int:
     req = request_from_args(args)
     doc = measure_scene(mi, req, progress=not args.no_progress)
     write_outputs(args.out, doc, command)
-    for line in doc["verdict"]:
+    for line in doc["preset_verdict"].values():
         print(line)
     bad = [c for c in doc["checks"] if not c["exact"]]
     if bad:
