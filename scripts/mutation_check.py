@@ -140,6 +140,22 @@ MUTATIONS = (
              "    return AGREES if z_test_passed(z_pass_fraction) else DIFFERS\n",
              "    return AGREES\n",
              ("tests/test_verdict.py::test_a_real_difference_differs[max_depth]",)),
+    Mutation("replay_ignores_culling", "the locality replay takes every popped entry, however far (the kernel culls "
+             "those beyond the closest hit): its trace no longer follows the kernel",
+             "layerbvh/memtrace.py",
+             "link = e_link if (active and e_t <= fst[s, F_T] * _FAR) else _POP",
+             "link = e_link if active else _POP",
+             ("tests/test_locality.py::test_trace_follows_the_kernel[closest-camera-bunny]",)),
+    Mutation("replay_never_sorts", "the locality replay's layer_sorted keeps the unsorted order between steps",
+             "layerbvh/locality.py",
+             'keep = np.argsort(keys, kind="stable")[:n_active - done] if sort else np.flatnonzero(keys != finished)',
+             "keep = np.flatnonzero(keys != finished)",
+             ("tests/test_locality.py::test_sorting_must_cut_transactions",)),
+    Mutation("coalesce_without_dedup", "coalescing counts a segment once per lane that touches it",
+             "layerbvh/memmodel.py",
+             "            if j > 0 and out[j - 1] == s:\n                continue\n",
+             "",
+             ("tests/test_memmodel.py::test_coalesce_broadcast_is_one_segment",)),
 )
 
 
