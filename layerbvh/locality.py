@@ -374,13 +374,20 @@ def verdict(rows: list[LocalityRow]) -> list[str]:
     return out
 
 
+def headline_config(rows: list[LocalityRow]) -> tuple:
+    """(warp, treelet height) a preset's one-sentence verdict and tables use: its first warp width
+    in `rows`, and the default treelet height if it was measured, else the first."""
+    heights = [r.treelet_height for r in rows]
+    return rows[0].warp, DEFAULT_TREELET_HEIGHT if DEFAULT_TREELET_HEIGHT in heights else heights[0]
+
+
 def preset_verdict(rows: list[LocalityRow]) -> dict:
-    """One sentence per preset over every kind of rays (at the preset's first warp width and
-    treelet height in `rows`): the verdict BENCHMARKS.md states per scene and preset."""
+    """One sentence per preset over every kind of rays (at headline_config): the verdict
+    BENCHMARKS.md states per scene and preset."""
     out = {}
     for pre in dict.fromkeys(r.preset for r in rows):
         mine = [r for r in rows if r.preset == pre]
-        warp, h = mine[0].warp, mine[0].treelet_height
+        warp, h = headline_config(mine)
         kinds = _groups([r for r in mine if r.warp == warp and r.treelet_height == h], lambda r: r.kind)
         nt, tot = {}, {}
         for kind, g in kinds.items():
@@ -393,7 +400,9 @@ def preset_verdict(rows: list[LocalityRow]) -> dict:
             continue
         gain = [k for k, v in nt.items() if v < 0.9]
         wins = [k for k, v in tot.items() if v < 1.0]
-        span = (lambda d: f"{min(d.values()):.2f}-{max(d.values()):.2f}x")
+        def span(d):
+            lo, hi = min(d.values()), max(d.values())
+            return f"{lo:.2f}x" if f"{lo:.2f}" == f"{hi:.2f}" else f"{lo:.2f}-{hi:.2f}x"
         out[pre] = (
             f"{pre} (W={warp}, H={h}): sorting "
             + (f"cuts the node and triangle bytes read from DRAM on {', '.join(f'{k} ({nt[k]:.2f}x)' for k in gain)}"

@@ -26,5 +26,11 @@ cp -r out/sweep_converge/converge/paper_mix docs/converge/paper_mix
 # auto against per_ray on whole renders of multi-shape scenes at their own depth, fresh processes
 # (PERFORMANCE.md entry 25).
 $PY scripts/bench_auto.py --rounds 3 --json docs/bench/auto_render.json
+# The locality model (memory transactions and cache hits per mode) on both scenes' recorded rays
+# (about 13 minutes on 2 cores); BENCHMARKS.md's locality section.
+$LAYERBVH sweep scenes/paper_mix.xml out/stress_spheres_1m/scene.xml --job locality \
+    --rays camera,first_bounce_diffuse,diffuse,shadow --treelet-heights 4,8 --res 512 512 --spp 1 --workers 1 \
+    --rerun --no-progress --out out/sweep_locality
+cp out/sweep_locality/locality.json docs/bench/locality.json
 $PY scripts/report.py --bench docs/bench/bench_meshes.json --bench docs/bench/bench.json \
-    --scaling docs/bench/scaling.json --converge docs/converge/paper_mix --readme
+    --scaling docs/bench/scaling.json --converge docs/converge/paper_mix --locality docs/bench/locality.json --readme

@@ -1,60 +1,68 @@
-"""The GPU check of the locality model: measured layer_sorted x per_ray on the GPU beside what the model predicts for its preset, from one ray recording and one traversal benchmark (scripts/gpu_check.sh)."""
+"""The GPU check of the locality model, the half that runs here: record a scene's rays, replay them through the model for the GPU's preset, and write what the device half (scripts/gpu_check_device.py) needs: the rays, the triangles, the replay's hits and the model's prediction."""
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import sys
+from pathlib import Path
 
 import numpy as np
 
 import layerbvh
-from layerbvh.locality import LocalitySettings, RaySet, measure
+from layerbvh.locality import LocalitySettings, RaySet, measure, replay
 
-from .. import record
-from .locality import rows_of
+from .. import atomic
 
-MODEL_RAYS = 200_000  # rays per kind the model replays (sampled, and said): the check must fit in minutes
+KINDS = ("camera", "first_bounce_diffuse", "diffuse", "shadow")
+RAYS_PER_KIND = 200_000   # the device half must fit the device tool's 64 MiB carry with the drjit wheel
+MODES = ("per_ray", "layer_sorted")
+
+
+def prepare(scene: str, out: Path, preset: str, height: int, res, spp: int, rays_per_kind: int) -> dict:
+    """Write out/rays.npz (triangles; per kind the rays and the replay's prim and t) and
+    out/model.json (the model's per_ray and layer_sorted rows for `preset`); returns model.json."""
+    from layerbvh.memmodel import preset as named_preset
+
+    from ..render import use_variant
+    from .locality import rows_of
+    from .record_rays import cached_recording
+    mi = use_variant("llvm_ad_rgb")
+    v, f, rays, meta = cached_recording(mi, scene, res, spp, 0, rays_per_kind)
+    sets = [RaySet(k, *rays[k], any_hit=k == "shadow") for k in KINDS if k in rays]
+    run = measure(v, f, sets, LocalitySettings(modes=MODES, presets=(preset,), treelet_heights=(height,)), 4)
+    arrays = {"vertices": np.asarray(v, np.float32), "faces": np.asarray(f, np.int64)}
+    bvh = layerbvh.build(v, f, treelet_height=height, batch_rays=max(len(s.o) for s in sets))
+    for s in sets:  # the replay's hits: what the LLVM kernel returns, bit for bit (checked in measure)
+        rep = replay(bvh.layout, s.o, s.d, s.tmax, "per_ray", s.any_hit, 32, named_preset(preset))
+        arrays.update({f"{s.kind}_o": s.o, f"{s.kind}_d": s.d, f"{s.kind}_tmax": s.tmax, f"{s.kind}_prim": rep.prim,
+                       f"{s.kind}_t": rep.t})
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    atomic.write_bytes(out / "rays.npz", buf.getvalue())
+    rows = rows_of(run.as_dict())
+    model = {"scene": str(scene), "preset": named_preset(preset).as_dict(), "treelet_height": height,
+             "checks": run.checks, "rows": [r.as_dict() for r in rows], "kinds": [s.kind for s in sets],
+             "recording": {"resolution": list(res), "spp": spp, "rays_per_kind": rays_per_kind}}
+    atomic.write_text(out / "model.json", json.dumps(model, indent=1))
+    return model
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__)
-    p.add_argument("--rays", required=True, help="ray recording (.npz, scripts/record_rays.py)")
-    p.add_argument("--bench", required=True, help="bench_traversal.py --json output on the same recording")
+    p.add_argument("--scene", default="scenes/paper_mix.xml")
+    p.add_argument("--out", default="out/gpu_check")
     p.add_argument("--preset", default="h200", help="the GPU's preset (default %(default)s)")
     p.add_argument("--height", type=int, default=layerbvh.DEFAULT_TREELET_HEIGHT)
-    p.add_argument("--json", help="write the comparison here")
+    p.add_argument("--res", type=int, nargs=2, default=(512, 512))
+    p.add_argument("--spp", type=int, default=1)
+    p.add_argument("--rays", type=int, default=RAYS_PER_KIND, help="rays per kind (default %(default)s)")
     args = p.parse_args(argv)
-    v, f, rays, _ = record.load(args.rays)
-    bench = json.loads(open(args.bench).read())
-    measured = {}
-    for r in bench["results"]:
-        if r["mode"] in ("per_ray", "layer_sorted") and r["treelet_height"] == args.height:
-            measured[(r["rays"], r["mode"])] = r["mrays_s"]
-    kinds = sorted({k for k, _ in measured} & set(rays))
-    sets = [RaySet(k, *rays[k], any_hit=k == "shadow") for k in kinds]
-    run = measure(v, f, sets, LocalitySettings(modes=("per_ray", "layer_sorted"), presets=(args.preset,),
-                                               treelet_heights=(args.height,), sample=MODEL_RAYS), 4)
-    rows = rows_of(run.as_dict())
-    out = []
-    print(f"{'kind':22} {'measured sorted x per_ray':>26} {'model: DRAM bytes':>18} {'model: +between steps':>22} "
-          f"{'model: node tx':>15}   (model: per_ray / sorted; >1 means sorted predicted faster)")
-    for k in kinds:
-        pr = next(r for r in rows if r.kind == k and r.mode == "per_ray")
-        so = next(r for r in rows if r.kind == k and r.mode == "layer_sorted")
-        speed = measured[(k, "layer_sorted")] / measured[(k, "per_ray")]
-        pred = {"dram": pr.dram_bytes_per_ray / so.dram_bytes_per_ray,
-                "total": pr.dram_bytes_per_ray / so.total_dram_bytes_per_ray,
-                "node_tx": pr.node_transactions_per_ray / so.node_transactions_per_ray}
-        out.append({"kind": k, "measured_sorted_over_per_ray": speed, "model": pred, "rays_modelled": so.rays,
-                    "sampled_from": so.sampled_from})
-        print(f"{k:22} {speed:26.2f} {pred['dram']:18.2f} {pred['total']:22.2f} {pred['node_tx']:15.2f}")
-    if not all(c["exact"] for c in run.checks):
-        print("warning: the trace differs from the kernel on some rays", file=sys.stderr)
-    if args.json:
-        from .. import atomic
-        atomic.write_text(args.json, json.dumps({"preset": args.preset, "height": args.height, "kinds": out,
-                                                 "checks": run.checks}, indent=1))
-    return 0
+    model = prepare(args.scene, Path(args.out), args.preset, args.height, tuple(args.res), args.spp, args.rays)
+    exact = all(c["exact"] for c in model["checks"])
+    print(f"wrote {args.out}/rays.npz and model.json ({', '.join(model['kinds'])}; trace "
+          f"{'exact' if exact else 'NOT exact'} against the LLVM kernel)")
+    return 0 if exact else 1
 
 
 if __name__ == "__main__":

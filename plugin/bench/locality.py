@@ -191,7 +191,7 @@ def benchmarks_section(doc: dict, fig_rel: str) -> str:
     """BENCHMARKS.md's locality section from a locality.json (one scene, or a sweep's merged
     document): the command, the machine, the presets, then per scene its verdict per preset, a
     table per preset and the plot (fig_rel/locality_SCENE.png, written by write_figures)."""
-    from layerbvh.locality import preset_verdict
+    from layerbvh.locality import headline_config, preset_verdict
     m = doc.get("machine") or {}
     parts = ["## Locality: memory transactions and cache hits (`layerbvh locality`)", "", MEANING, "",
              f"Command: `{doc['command']}`" + (f" ({m.get('cpu')}, {m.get('cores')} cores, Dr.Jit LLVM "
@@ -210,9 +210,9 @@ def benchmarks_section(doc: dict, fig_rel: str) -> str:
         parts += [f"- {v}" for v in preset_verdict(rows).values()] + [""]
         for pre in dict.fromkeys(r.preset for r in rows):
             mine = [r for r in rows if r.preset == pre]
-            parts += [f"{pre}, W={mine[0].warp}, H={mine[0].treelet_height}:", "",
-                      table_compact([r for r in mine if r.warp == mine[0].warp
-                                     and r.treelet_height == mine[0].treelet_height])]
+            warp, h = headline_config(mine)
+            parts += [f"{pre}, W={warp}, H={h}:", "",
+                      table_compact([r for r in mine if r.warp == warp and r.treelet_height == h])]
         parts += [f"![DRAM bytes per ray]({fig_rel}/locality_{_slug(scene)}.png)", ""]
     return "\n".join(parts)
 
