@@ -122,22 +122,23 @@ class Preset:
                 f"{levels}; {flush}")
 
 
-GTX965M = Preset(
-    name="gtx965m",
-    description=("NVIDIA GeForce GTX 965M (Maxwell GM204, the paper's GPU); 16 resident warps per SM "
-                 "because a traversal kernel's register use limits occupancy"),
-    kind="gpu",
-    units=8,
-    resident_warps=GPU_RESIDENT_WARPS,
-    block_warps=GPU_BLOCK_WARPS,
-    warp=NVIDIA_WARP,
-    segment_bytes=GPU_SECTOR_BYTES,
-    levels=(
-        CacheLevel("L1", 24 * KIB, GPU_L1_WAYS, GPU_SECTOR_BYTES, shared=False),
-        CacheLevel("L2", 1 * MIB, GPU_L2_WAYS, GPU_SECTOR_BYTES, shared=True),
-    ),
-    flush_private_each_kernel=True,
-    source=(
+def nvidia_preset(name: str, part: str, sms: int, l1_bytes: int, l2_bytes: int, source: str) -> Preset:
+    """An NVIDIA GPU: `sms` SMs of one private L1 each over a shared L2, 32-lane warps, 32-byte
+    sectors, L1s flushed at each kernel launch; what differs between parts is the arguments."""
+    return Preset(
+        name=name,
+        description=f"{part}; {GPU_RESIDENT_WARPS} resident warps per SM because a traversal kernel's register "
+                    "use limits occupancy",
+        kind="gpu", units=sms, resident_warps=GPU_RESIDENT_WARPS, block_warps=GPU_BLOCK_WARPS, warp=NVIDIA_WARP,
+        segment_bytes=GPU_SECTOR_BYTES,
+        levels=(CacheLevel("L1", l1_bytes, GPU_L1_WAYS, GPU_SECTOR_BYTES, shared=False),
+                CacheLevel("L2", l2_bytes, GPU_L2_WAYS, GPU_SECTOR_BYTES, shared=True)),
+        flush_private_each_kernel=True, source=source)
+
+
+GTX965M = nvidia_preset(
+    "gtx965m", "NVIDIA GeForce GTX 965M (Maxwell GM204, the paper's GPU)", 8, 24 * KIB, 1 * MIB,
+    (
         "8 SMM: 1024 CUDA cores / 128 per Maxwell SMM (GeForce GTX 980 Whitepaper, 'GM204 Hardware "
         "Architecture In-Depth'; GTX 965M launch specs: 1024 cores, 128-bit bus). "
         "L1 24 KB per SM: CUDA C++ Programming Guide, Compute Capability 5.x: 'a unified L1/texture "
@@ -153,25 +154,11 @@ GTX965M = Preset(
         f"{GPU_L1_WAYS}-way, L2 {GPU_L2_WAYS}-way. Resident warps {GPU_RESIDENT_WARPS} and "
         f"{GPU_BLOCK_WARPS}-warp blocks: modelling choices (register-limited occupancy, 128-thread "
         "blocks)."
-    ),
-)
+    ))
 
-H200 = Preset(
-    name="h200",
-    description=("NVIDIA H200 SXM (Hopper GH100, 132 SMs); 16 resident warps per SM because a "
-                 "traversal kernel's register use limits occupancy"),
-    kind="gpu",
-    units=132,
-    resident_warps=GPU_RESIDENT_WARPS,
-    block_warps=GPU_BLOCK_WARPS,
-    warp=NVIDIA_WARP,
-    segment_bytes=GPU_SECTOR_BYTES,
-    levels=(
-        CacheLevel("L1", 256 * KIB, GPU_L1_WAYS, GPU_SECTOR_BYTES, shared=False),
-        CacheLevel("L2", 60 * MIB, GPU_L2_WAYS, GPU_SECTOR_BYTES, shared=True),
-    ),
-    flush_private_each_kernel=True,
-    source=(
+H200 = nvidia_preset(
+    "h200", "NVIDIA H200 SXM (Hopper GH100, 132 SMs)", 132, 256 * KIB, 60 * MIB,
+    (
         "132 SMs: NVIDIA H100 Tensor Core GPU Architecture whitepaper (H100 SXM5: 132 SMs; H200 is "
         "the same GH100 configuration). L1 256 KB: Hopper Tuning Guide, 'Unified Shared Memory/L1/"
         "Texture Cache': compute capability 9.0 'increases the maximum capacity of the combined L1 "
@@ -183,14 +170,13 @@ H200 = Preset(
         "(Chips and Cheese, 'Nvidia's H100: Funny L2, and Tons of Bandwidth': the H100 PCIe enables "
         "50 MB with 10 controllers), and the H200 populates all six HBM3e stacks; the CUDA runtime on "
         "an H200 reports 60 MB of L2 and 132 multiprocessors (torch.cuda.get_device_properties, as "
-        "recorded 2026-10-28 in the notes of the H200 machines this project's GPU checks run on). "
+        "recorded 2026-10-28 in this workplace's notes on its lent H200 machines). "
         "The L2 is two partitions joined by a crossbar; modelled as one shared cache. 32-byte "
         "sectors: Nsight Compute memory chart (L1/TEX and L2 lines are four 32-byte sectors). Ways: "
         "not documented; assumed L1 "
         f"{GPU_L1_WAYS}-way, L2 {GPU_L2_WAYS}-way. Resident warps {GPU_RESIDENT_WARPS} and "
         f"{GPU_BLOCK_WARPS}-warp blocks: modelling choices."
-    ),
-)
+    ))
 
 
 def _parse_size(text: str) -> int:

@@ -18,6 +18,9 @@ from __future__ import annotations
 # the spare slot). At a warp's first iteration each lane also loads its ray (and, in a wavefront
 # step, its state). Instanced layouts are not replayed: the locality tools flatten instances.
 
+# numba's on-disk cache checks only the file a function is in: run_kernel compiles memmodel's
+# cache_access and coalesce into itself, so after editing memmodel.py touch this file (or remove
+# layerbvh/__pycache__/*.nb*) or the replay keeps the old model.
 import numba
 import numpy as np
 

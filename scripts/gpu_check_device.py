@@ -42,8 +42,8 @@ def main(argv=None) -> int:
         o, d, tmax = z[f"{kind}_o"], z[f"{kind}_d"], z[f"{kind}_tmax"]
         any_hit = kind == "shadow"
         m = bvh.m
-        O = [m.Float(np.ascontiguousarray(o[:, c])) for c in range(3)]
-        D = [m.Float(np.ascontiguousarray(d[:, c])) for c in range(3)]
+        O = m.Array3f(*(m.Float(np.ascontiguousarray(o[:, c])) for c in range(3)))  # on the device, as a
+        D = m.Array3f(*(m.Float(np.ascontiguousarray(d[:, c])) for c in range(3)))  # renderer passes them
         T = m.Float(tmax)
 
         def trace(mode):
