@@ -11,7 +11,7 @@ import numpy as np
 from . import memtrace as mt
 from .inputs import DEFAULT_TREELET_HEIGHT
 from .layout import LayerLayout
-from .memmodel import Caches, Preset, preset as named_preset
+from .memmodel import Caches, Preset, preset as named_preset, with_segment
 from .state import MISS
 from .wavefront import ENTRY_BYTES, MODES, TAIL_FRACTION, TAIL_RAYS
 
@@ -346,6 +346,7 @@ class LocalitySettings:
     seed: int = 0
     check: bool = True              # compare each mode's trace with the kernel (once per kind, height)
     threads: int | None = None      # replays run at once (numba releases the GIL); None: the CPU count
+    segments: tuple | None = None   # transaction sizes in bytes (memmodel.with_segment); None: each preset's own
 
 
 def _ratio(a: float, b: float) -> float:
@@ -455,7 +456,8 @@ def measure(vertices, faces, ray_sets: list[RaySet], settings: LocalitySettings,
     `progress(done, total, label)` is called after each replay."""
     from .bvh import build
     t0 = time.perf_counter()
-    presets = [named_preset(p) for p in settings.presets]
+    presets = [with_segment(named_preset(p), seg) if seg else named_preset(p)
+               for p in settings.presets for seg in (settings.segments or (None,))]
     sets = []
     for rs in ray_sets:
         o, d, tmax, before = sample_rays(rs.o, rs.d, rs.tmax, settings.sample, settings.seed)

@@ -286,6 +286,20 @@ def preset(name: str) -> Preset:
         raise ValueError(f"unknown preset {name!r}; one of: {', '.join(PRESETS)}") from None
 
 
+def with_segment(p: Preset, segment_bytes: int) -> Preset:
+    """`p` with transactions of `segment_bytes` (e.g. 128-byte lines instead of a GPU's 32-byte
+    sectors): every level then allocates at least that much per line, so one transaction is one
+    line everywhere. Named NAME-sS (the rows of different segment sizes stay apart)."""
+    if segment_bytes < 1 or segment_bytes & (segment_bytes - 1):
+        raise ValueError(f"segment size must be a power of two, got {segment_bytes}")
+    if segment_bytes == p.segment_bytes:
+        return p
+    levels = tuple(CacheLevel(lv.name, lv.size_bytes, lv.ways, max(lv.line_bytes, segment_bytes), lv.shared)
+                   for lv in p.levels)
+    return Preset(**{**p.__dict__, "name": f"{p.name}-s{segment_bytes}", "segment_bytes": segment_bytes,
+                     "levels": levels})
+
+
 class Caches:
     """A preset's hierarchy as numba-ready arrays, plus its counters."""
 

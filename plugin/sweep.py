@@ -553,6 +553,7 @@ def add_parser(sub) -> None:
     s.add_argument("--preset", help="locality: comma list of hardware presets (default gtx965m,h200,cpu)")
     s.add_argument("--warp", help="locality: comma list of warp widths (default: each preset's own)")
     s.add_argument("--sample", type=int, help="locality: replay at most N rays per kind (default: all)")
+    s.add_argument("--segment", help="locality: comma list of transaction sizes in bytes (default: each preset's own)")
     s.add_argument("--runs", type=int, help="bench: timed runs per configuration (default 5)")
     s.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (llvm_ad_rgb, cuda_ad_rgb)")
     s.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT_S,
@@ -568,7 +569,7 @@ JOB_OPTIONS = {  # which options each job takes (an option given to another job 
     "compare": {"spp", "res", "seed", "traversal", "treelet_heights"},
     "converge": {"res", "configs", "budget", "ref_spp", "max_spp"},
     "bench": {"spp", "res", "seed", "treelet_heights", "rays", "ray_count", "runs"},
-    "locality": {"spp", "res", "seed", "treelet_heights", "rays", "ray_count", "preset", "warp", "sample"},
+    "locality": {"spp", "res", "seed", "treelet_heights", "rays", "ray_count", "preset", "warp", "sample", "segment"},
 }
 ALL_JOB_OPTIONS = set().union(*JOB_OPTIONS.values())
 
@@ -673,7 +674,7 @@ def _locality_grid(args, res, seed: int) -> list[dict]:
                            preset=args.preset or ",".join(DEFAULT_PRESETS),
                            treelet_heights=args.treelet_heights or str(layerbvh.DEFAULT_TREELET_HEIGHT),
                            modes=",".join(layerbvh.MODES), leaf_size=layerbvh.DEFAULT_LEAF_SIZE, sample=args.sample,
-                           cap=args.ray_count or DEFAULT_CAP, no_check=False)
+                           cap=args.ray_count or DEFAULT_CAP, no_check=False, segment=args.segment)
     if args.spp and not args.spp.isdigit():
         raise UserError(f"--spp for --job locality is one value >= 1 (the recording's), got {args.spp}")
     try:
@@ -682,7 +683,8 @@ def _locality_grid(args, res, seed: int) -> list[dict]:
         raise UserError(str(e)) from None
     return [{"rays": k, "treelet_height": h, "presets": list(req.presets), "warps": list(req.warps or []) or None,
              "res": res, "spp": req.spp or DEFAULT_SPP, "seed": seed, "sample": req.sample, "ray_count": req.cap,
-             "variant": args.variant} for k in req.kinds for h in req.treelet_heights]
+             "segments": list(req.segments) if req.segments else None, "variant": args.variant}
+            for k in req.kinds for h in req.treelet_heights]
 
 
 def run_command(args) -> int:

@@ -312,3 +312,18 @@ def test_level_size_must_be_whole_sets():
 def test_private_levels_must_come_first():
     with pytest.raises(ValueError, match="private levels must come before shared"):
         hierarchy(CacheLevel("L1", 4096, 4, 64, shared=True), CacheLevel("L2", 65536, 8, 64, shared=False))
+
+
+def test_with_segment_makes_one_transaction_one_line():
+    """128-byte transactions (a GPU's whole lines instead of its 32-byte sectors): every level
+    allocates 128-byte lines, a 64-byte record at a 128-byte boundary is one transaction, and the
+    preset keeps its name apart; a size that is no power of two is refused."""
+    from layerbvh.memmodel import with_segment
+    p = with_segment(mm.preset("gtx965m"), 128)
+    assert p.name == "gtx965m-s128" and p.segment_bytes == 128
+    assert all(level.line_bytes == 128 for level in p.levels)
+    assert with_segment(mm.preset("gtx965m"), 32) is mm.preset("gtx965m")
+    out = np.empty(8, np.int64)
+    assert mm.coalesce(np.array([256, 320], np.int64), np.ones(2, np.bool_), 2, 64, 128, out) == 1
+    with pytest.raises(ValueError, match="power of two"):
+        with_segment(mm.preset("h200"), 48)

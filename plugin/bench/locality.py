@@ -11,7 +11,7 @@ import numpy as np
 
 import layerbvh
 from layerbvh.locality import LocalitySettings, RaySet, measure
-from layerbvh.memmodel import PRESETS, preset as named_preset
+from layerbvh.memmodel import PRESETS, CacheLevel, Preset, preset as named_preset
 
 from .. import atomic
 from ..record import KINDS
@@ -41,6 +41,7 @@ class LocalityRequest:
     sample: int | None
     cap: int
     check: bool = True
+    segments: tuple | None = None  # None: each preset's own transaction size
 
 
 def parse_list(text: str, what: str, choices=None, kind=str) -> tuple:
@@ -71,6 +72,9 @@ def request_from_args(args) -> LocalityRequest:
     for h in heights:
         layerbvh.check_param("treelet_height", h)
     modes = parse_list(args.modes, "modes", layerbvh.MODES)
+    segments = None if getattr(args, "segment", None) is None else parse_list(args.segment, "segment", kind=int)
+    if segments is not None and any(x < 1 or x & (x - 1) for x in segments):
+        raise ValueError(f"--segment: sizes must be powers of two, got {','.join(map(str, segments))}")
     if args.sample is not None and args.sample < 1:
         raise ValueError(f"--sample must be >= 1, got {args.sample}")
     if args.spp is not None and args.spp < 1:
@@ -78,7 +82,7 @@ def request_from_args(args) -> LocalityRequest:
     return LocalityRequest(scene=args.scene, res=tuple(args.res) if args.res else None, spp=args.spp or DEFAULT_SPP,
                            seed=args.seed, kinds=kinds, warps=warps, presets=presets, treelet_heights=heights,
                            modes=modes, leaf_size=layerbvh.check_param("leaf_size", args.leaf_size),
-                           sample=args.sample, cap=args.cap, check=not args.no_check)
+                           sample=args.sample, cap=args.cap, check=not args.no_check, segments=segments)
 
 
 def measure_scene(mi, req: LocalityRequest, progress: bool = True) -> dict:
@@ -103,8 +107,9 @@ def measure_scene(mi, req: LocalityRequest, progress: bool = True) -> dict:
         raise ValueError(f"the render traced none of the kinds asked for ({', '.join(req.kinds)}) at "
                          f"{res[0]}x{res[1]}, {req.spp} spp")
     settings = LocalitySettings(modes=req.modes, warps=req.warps, presets=req.presets,
-                                treelet_heights=req.treelet_heights, sample=req.sample, seed=req.seed, check=req.check)
-    per_preset = sum(len(req.warps or (named_preset(p).warp,)) for p in req.presets)
+                                treelet_heights=req.treelet_heights, sample=req.sample, seed=req.seed, check=req.check,
+                                segments=req.segments)
+    per_preset = sum(len(req.warps or (named_preset(p).warp,)) for p in req.presets) * len(req.segments or (None,))
     total = per_preset * len(req.modes) * len(req.treelet_heights) * len(sets)
     with tqdm(total=total, desc="locality", unit="replay", disable=not progress, file=sys.stderr) as bar:
         def step(done, _total, label):
@@ -117,9 +122,10 @@ def measure_scene(mi, req: LocalityRequest, progress: bool = True) -> dict:
         "triangles": int(len(f)), "leaf_size": req.leaf_size, "record_s": record_s,
         "kinds": {k: {"recorded": int(len(rays[k][0])), "traced": meta["kinds"][k]["traced"]} for k in req.kinds if k in rays},
         "kinds_missing": missing, "sampled": req.sample,
-        "presets": {p: named_preset(p).as_dict() for p in req.presets},
+        "presets": {r.preset: r.preset_params for r in run.rows},
         "machine": machine(),
-        "preset_lines": [named_preset(p).describe() for p in req.presets],
+        "preset_lines": list(dict.fromkeys(Preset(**{**r.preset_params, "levels": tuple(CacheLevel(**lv) for lv in
+                                                     r.preset_params["levels"])}).describe() for r in run.rows)),
     })
     return doc
 
@@ -361,6 +367,9 @@ def add_parser(sub) -> None:
                                    "32 on the GPUs, the CPU's SIMD lanes)")
     lp.add_argument("--preset", default=",".join(DEFAULT_PRESETS),
                     help=f"comma list of hardware presets: {', '.join(PRESETS)} (default %(default)s)")
+    lp.add_argument("--segment", help="comma list of transaction sizes in bytes, e.g. 32,128 (default: each preset's "
+                                      "own: 32-byte sectors on the GPUs, 64-byte lines on the CPU); a size above a "
+                                      "level's line makes that level allocate lines of that size")
     lp.add_argument("--treelet-heights", default=str(layerbvh.DEFAULT_TREELET_HEIGHT),
                     help="comma list of treelet heights (default %(default)s)")
     lp.add_argument("--modes", default=",".join(layerbvh.MODES), help="comma list of modes (default %(default)s)")
