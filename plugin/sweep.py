@@ -23,6 +23,7 @@ from typing import Callable
 from . import atomic
 from .integrator import EMBREE
 from .render import UserError
+from .slurm import WALLTIME_MARGIN_S, SlurmSettings, time_left_in_job
 
 EXCLUSIVE = "exclusive"  # Dask worker resource held by timed points: one per machine, so they never overlap
 LOOPBACK = "127.0.0.1"  # the local cluster listens here only
@@ -217,6 +218,14 @@ def run_point_task(point: dict, limits: dict) -> dict:
                 "error": f"scene file not found on host {host}: {point['scene']} (workers need the scenes at the "
                          f"same path, e.g. on a shared filesystem)"}
     memory = lim.memory_on_host()
+    # Inside a SLURM job (--cluster slurm) the point must end before its job does: a point cut off
+    # by the walltime would take its worker with it and come back as a crash.
+    timeout, too_long = lim.timeout_s, f"killed: time limit {lim.timeout_s:g} s"
+    job = time_left_in_job()
+    if job is not None and job[0] - WALLTIME_MARGIN_S < timeout:
+        timeout = max(0.0, job[0] - WALLTIME_MARGIN_S)
+        too_long = (f"killed: the SLURM job's walltime {job[1]} ended before the point finished (raise "
+                    f"--slurm-walltime)")
     with tempfile.TemporaryDirectory(prefix="layerbvh-point-") as tmp:
         tmp = Path(tmp)
         (tmp / "point.json").write_text(json.dumps(point))
@@ -236,8 +245,8 @@ def run_point_task(point: dict, limits: dict) -> dict:
                         peak = max(peak, ps.memory_info().rss)
                     if peak > memory:
                         killed = f"killed: resident memory {_gib(peak)} above the limit {_gib(memory)}"
-                    elif time.perf_counter() - t0 > lim.timeout_s:
-                        killed = f"killed: time limit {lim.timeout_s:g} s"
+                    elif time.perf_counter() - t0 > timeout:
+                        killed = too_long
                     if killed:
                         proc.kill()
                         break
@@ -320,14 +329,19 @@ def scheduler_address(text: str) -> str:
 
 
 @contextlib.contextmanager
-def dask_client(workers: int | None, scheduler: str | None):
-    """A client of a new local cluster of `workers` processes, or of the scheduler at `scheduler`."""
+def dask_client(workers: int | None, scheduler: str | None, slurm: SlurmSettings | None = None, out: Path | None = None):
+    """A client of a new local cluster of `workers` processes, of the scheduler at `scheduler`, or of
+    a new cluster of SLURM jobs (`slurm`; its job script goes to `out`)."""
     from distributed import Client
     for name in ("distributed", "tornado"):
         logging.getLogger(name).setLevel(logging.ERROR)
     cluster = None
     try:
-        if scheduler:
+        if slurm is not None:
+            from .slurm import make_cluster
+            cluster = make_cluster(slurm, out, EXCLUSIVE)
+            client = Client(cluster)
+        elif scheduler:
             address = scheduler_address(scheduler)
             try:
                 client = Client(address, timeout=CONNECT_TIMEOUT_S)
@@ -405,7 +419,7 @@ class RunLog:
 
 def run_sweep(points: list[Point], out, *, workers: int | None = None, scheduler: str | None = None,
               client=None, limits: Limits | None = None, rerun: bool = False, progress: bool = True,
-              command: str = "") -> SweepResult:
+              command: str = "", slurm: SlurmSettings | None = None) -> SweepResult:
     """Run every point without a stored successful result as one Dask task; store each as it finishes;
     write the tables (sweep_table). Ctrl-C stops it with the finished points stored and the tables written."""
     from tqdm import tqdm
@@ -419,7 +433,8 @@ def run_sweep(points: list[Point], out, *, workers: int | None = None, scheduler
     if client is not None or not todo:
         connection = contextlib.nullcontext(client)
     else:
-        connection = dask_client(workers, scheduler)
+        out.mkdir(parents=True, exist_ok=True)  # the SLURM job script and logs go next to the results
+        connection = dask_client(workers, scheduler, slurm, out)
     with connection as c:  # connected (and checked) before anything is written
         if c is not None:
             res.cluster = describe_cluster(c)
@@ -430,7 +445,8 @@ def run_sweep(points: list[Point], out, *, workers: int | None = None, scheduler
                                                              if i not in todo]})
         try:
             if todo:
-                lim = limits or Limits(slots=workers if client is None and not scheduler and workers else 1)
+                lim = limits or Limits(slots=workers if client is None and not scheduler and not slurm and workers
+                                       else 1)
                 with tqdm(total=len(points), initial=len(points) - len(todo), desc="sweep", unit="point",
                           disable=not progress, file=sys.stderr) as bar:
                     _run_tasks(c, points, todo, lim, res, log, bar)
@@ -530,6 +546,23 @@ def add_parser(sub) -> None:
     where = s.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, help="worker processes of a local Dask cluster (default: cores)")
     where.add_argument("--scheduler", help="an existing Dask scheduler: ADDRESS (tcp://host:port) or its scheduler file")
+    where.add_argument("--cluster", choices=("slurm",), help="slurm: the workers as SLURM jobs (dask-jobqueue; the "
+                                                            "--slurm-* options), started and ended by the sweep")
+    s.add_argument("--slurm-partition", help="slurm: partition (sbatch -p; default: the cluster's default)")
+    s.add_argument("--slurm-account", help="slurm: account to charge (sbatch -A)")
+    s.add_argument("--slurm-cores", type=int, default=1, help="slurm: cores per job; untimed points run one per core "
+                                                              "(default %(default)s)")
+    s.add_argument("--slurm-memory", type=float, default=4.0, metavar="GIB", help="slurm: memory per job in GiB "
+                                                                                  "(default %(default)g)")
+    s.add_argument("--slurm-walltime", default="01:00:00", help="slurm: time limit per job, [D-]HH:MM:SS (default "
+                                                                "%(default)s); a point that would outlast its job "
+                                                                "fails with a line naming it")
+    s.add_argument("--slurm-jobs", type=int, default=1, help="slurm: jobs (workers) to run at once (default "
+                                                            "%(default)s; with --slurm-adapt-min, the most)")
+    s.add_argument("--slurm-adapt-min", type=int, help="slurm: scale adaptively between this many jobs and "
+                                                       "--slurm-jobs (jobs end when idle)")
+    s.add_argument("--slurm-extra", action="append", default=[], metavar="DIRECTIVE",
+                   help="slurm: one more #SBATCH directive, e.g. --slurm-extra=--constraint=avx512 (repeatable)")
     s.add_argument("--spp", help="compare: spp, comma list (default: the scene's); bench: spp of the ray recording "
                                  "(default 4)")
     s.add_argument("--res", type=int, nargs=2, metavar=("W", "H"),
@@ -697,13 +730,21 @@ def run_command(args) -> int:
         raise UserError(f"--memory-limit must be > 0 GiB, got {args.memory_limit:g}")
     settings = grid(args)
     points = make_points(args.job, expand_scenes(args.scenes), settings)
-    workers = None if args.scheduler else (args.workers or os.cpu_count() or 1)
-    limits = Limits(timeout_s=args.timeout, memory_bytes=int(args.memory_limit * (1 << 30)) if args.memory_limit
-                    else None, slots=1 if JOBS[args.job].timed else (workers or 1))
+    slurm = None
+    if args.cluster == "slurm":
+        from .slurm import check
+        slurm = check(SlurmSettings(partition=args.slurm_partition, account=args.slurm_account, cores=args.slurm_cores,
+                                    memory_gib=args.slurm_memory, walltime=args.slurm_walltime, jobs=args.slurm_jobs,
+                                    adapt_min=args.slurm_adapt_min, extra=tuple(args.slurm_extra)))
+    workers = None if args.scheduler or slurm else (args.workers or os.cpu_count() or 1)
+    slots = 1 if JOBS[args.job].timed else (slurm.cores if slurm else (workers or 1))
+    memory = args.memory_limit or (slurm.memory_gib * MEMORY_SHARE if slurm else None)  # a job's memory, shared
+    limits = Limits(timeout_s=args.timeout, memory_bytes=int(memory * (1 << 30) / (slots if slurm and not
+                    args.memory_limit else 1)) if memory else None, slots=slots)
     command = shlex.join(["layerbvh", *sys.argv[1:]]) if Path(sys.argv[0]).name == "layerbvh" else \
         shlex.join(getattr(sys, "orig_argv", sys.argv))
     res = run_sweep(points, args.out, workers=workers, scheduler=args.scheduler, limits=limits, rerun=args.rerun,
-                    progress=not args.no_progress, command=command)
+                    progress=not args.no_progress, command=command, slurm=slurm)
     done = sum(1 for r in res.results if r is not None)
     bad = len(res.failed)
     print(f"{len(points)} points: {len(points) - bad} ok, {bad} failed or not run; ran {len(res.ran)}, reused "

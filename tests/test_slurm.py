@@ -1,0 +1,143 @@
+"""`layerbvh sweep --cluster slurm` on a real one-node SLURM cluster (scripts/slurm_local.sh): the table matches a local cluster's, and a cancelled job, a walltime shorter than a point and a killed sweep lose nothing."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from layerbvh_mitsuba.repo import ROOT, SCENES
+
+GRID = [str(SCENES / "cbox.xml"), str(SCENES / "empty_box.xml"), "--job", "compare", "--traversal",
+        "per_ray,layer_sorted", "--spp", "4", "--res", "16", "16", "--no-progress"]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def slurm(tmp_path_factory):
+    """A one-node SLURM cluster of our own (its own folder and ports), stopped afterwards; the
+    environment its commands need."""
+    if os.geteuid() != 0:
+        pytest.skip("a one-node SLURM cluster needs root here (scripts/slurm_local.sh runs its daemons as root)")
+    if shutil.which("sbatch") is None and shutil.which("apt-get") is None:
+        pytest.skip("no SLURM and no apt-get to install it")
+    folder = tmp_path_factory.mktemp("slurm")
+    env = {**os.environ, "LAYERBVH_SLURM_DIR": str(folder), "LAYERBVH_SLURMCTLD_PORT": str(_free_port()),
+           "LAYERBVH_SLURMD_PORT": str(_free_port())}
+    script = str(ROOT / "scripts" / "slurm_local.sh")
+    r = subprocess.run(["bash", script, "start"], env=env, capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    env["SLURM_CONF"] = r.stdout.strip().split("=", 1)[1]
+    yield env
+    subprocess.run(["scancel", "--user", "root"], env=env, capture_output=True, timeout=30)
+    subprocess.run(["bash", script, "stop"], env=env, capture_output=True, timeout=60)
+
+
+def _sweep(out, *args, env, **kw):
+    return subprocess.Popen([sys.executable, "-m", "layerbvh_mitsuba.cli", "sweep", *GRID, "--out", str(out), *args],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+
+
+def _rows(out) -> list[dict]:
+    return json.loads((Path(out) / "results.json").read_text())["rows"]
+
+
+def _jobs(env, state="") -> list[str]:
+    r = subprocess.run(["squeue", "-h", "-o", "%i %T"], env=env, capture_output=True, text=True, timeout=30)
+    return [ln.split()[0] for ln in r.stdout.splitlines() if ln.strip() and (not state or ln.split()[1] == state)]
+
+
+def test_sweep_on_slurm_matches_a_local_cluster(slurm, tmp_path):
+    """Two scenes x two traversals through SLURM jobs: every point ok, the same verdicts and
+    metrics as the same sweep on a local cluster, the job script next to the results."""
+    on_slurm = _sweep(tmp_path / "slurm", "--cluster", "slurm", "--slurm-jobs", "1", "--slurm-cores", "2",
+                      "--slurm-memory", "6", "--slurm-walltime", "00:10:00", env=slurm)
+    local = _sweep(tmp_path / "local", "--workers", "2", env=slurm)
+    for p in (on_slurm, local):
+        _, err = p.communicate(timeout=400)
+        assert p.returncode == 0, err
+    a, b = _rows(tmp_path / "slurm"), _rows(tmp_path / "local")
+    assert len(a) == len(b) == 4 and all(r["status"] == "ok" for r in a + b)
+    for ra, rb in zip(sorted(a, key=lambda r: r["key"]), sorted(b, key=lambda r: r["key"])):
+        assert ra["key"] == rb["key"]
+        for k in ("verdict", "within_1e-3", "rmse", "max_abs"):
+            assert ra[k] == rb[k], (k, ra[k], rb[k])
+    script = (tmp_path / "slurm" / "slurm_job.sh").read_text()
+    assert "#SBATCH -t 00:10:00" in script and "--cpus-per-task=2" in script and "exclusive=1" in script
+    assert not _jobs(slurm), "the sweep left SLURM jobs behind"
+
+
+def test_a_job_cancelled_mid_sweep_loses_nothing(slurm, tmp_path):
+    """Two one-core jobs; one is cancelled with scancel while points run. The sweep ends with every
+    point stored once, ok or failed; a resume runs exactly the ones that were not ok."""
+    out = tmp_path / "sw"
+    p = _sweep(out, "--cluster", "slurm", "--slurm-jobs", "2", "--slurm-cores", "1", "--slurm-memory", "4",
+               "--res", "48", "48", env=slurm)
+    t0 = time.monotonic()
+    while len(_jobs(slurm, "RUNNING")) < 2 and time.monotonic() - t0 < 120:
+        time.sleep(0.5)
+    running = _jobs(slurm, "RUNNING")
+    assert len(running) == 2, "the two worker jobs did not start"
+    time.sleep(4)  # both workers have taken a point
+    subprocess.run(["scancel", running[0]], env=slurm, check=True, timeout=30)
+    _, err = p.communicate(timeout=400)
+    rows = _rows(out)
+    assert len(rows) == 4 and len({r["key"] for r in rows}) == 4
+    ok = [r for r in rows if r["status"] == "ok"]
+    runs = json.loads((out / "runs.json").read_text())
+    ran = [k for run in runs["runs"] for k in run.get("ran", [])] if "runs" in runs else None
+    if ran is not None:
+        assert len(ran) == len(set(ran)), "a point was counted twice"
+    again = _sweep(out, "--cluster", "slurm", "--slurm-jobs", "1", "--slurm-cores", "2", "--slurm-memory", "6",
+                   "--res", "48", "48", env=slurm)
+    out_text, err = again.communicate(timeout=400)
+    assert again.returncode == 0, err
+    assert f"reused {len(ok)}" in out_text and f"ran {4 - len(ok)}," in out_text, out_text
+    assert all(r["status"] == "ok" for r in _rows(out))
+
+
+def test_walltime_shorter_than_a_point_names_it(slurm, tmp_path):
+    """A job whose walltime ends before its point would: the point fails with one line naming the
+    walltime (here the margin before a job's end is raised to 59 s of a 1-minute job)."""
+    out = tmp_path / "sw"
+    env = {**slurm, "LAYERBVH_SLURM_MARGIN_S": "59"}
+    p = subprocess.run([sys.executable, "-m", "layerbvh_mitsuba.cli", "sweep", str(SCENES / "cbox.xml"), "--job",
+                        "compare", "--traversal", "per_ray", "--spp", "4", "--res", "16", "16", "--no-progress",
+                        "--cluster", "slurm", "--slurm-walltime", "00:01:00", "--out", str(out)],
+                       env=env, capture_output=True, text=True, timeout=400)
+    assert p.returncode == 1, p.stderr
+    (row,) = _rows(out)
+    assert row["status"] == "killed" and "walltime" in row["error"] and "--slurm-walltime" in row["error"], row
+    assert "1:00" in row["error"]
+
+
+def test_a_killed_sweep_resumes_from_its_keys(slurm, tmp_path):
+    """The sweep process (and with it the Dask scheduler) is killed after its first point is stored;
+    the same command again reuses what was stored and runs the rest."""
+    out = tmp_path / "sw"
+    args = ("--cluster", "slurm", "--slurm-jobs", "1", "--slurm-cores", "1", "--slurm-memory", "4")
+    p = _sweep(out, *args, env=slurm, start_new_session=True)
+    t0 = time.monotonic()
+    while not list((out / "points").glob("*/result.json")) and time.monotonic() - t0 < 300:
+        time.sleep(0.3)
+    os.killpg(p.pid, signal.SIGKILL)
+    p.wait(timeout=30)
+    stored = len(list((out / "points").glob("*/result.json")))
+    assert 1 <= stored < 4
+    again = _sweep(out, *args, env=slurm)
+    text, err = again.communicate(timeout=400)
+    assert again.returncode == 0, err
+    assert f"reused {stored}" in text, text
+    assert all(r["status"] == "ok" for r in _rows(out))
