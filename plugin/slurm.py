@@ -74,7 +74,8 @@ def make_cluster(settings: SlurmSettings, out: Path, exclusive_resource: str):
         memory=f"{settings.memory_gib:g}GiB", walltime=settings.walltime, job_name="layerbvh-sweep",
         job_extra_directives=list(settings.extra), python=sys.executable, death_timeout=DEATH_TIMEOUT_S,
         log_directory=str(out / LOG_DIR), worker_extra_args=["--resources", f"{exclusive_resource}=1"],
-        local_directory=os.environ.get("TMPDIR", "/tmp"), silence_logs="error")
+        local_directory=os.environ.get("TMPDIR", "/tmp"), silence_logs="error",
+        scheduler_options={"dashboard_address": ":0"})  # any free port: 8787 may be taken by another cluster
     from . import atomic
     atomic.write_text(out / JOB_SCRIPT, cluster.job_script())
     if settings.adapt_min is not None:

@@ -36,7 +36,7 @@ install_packages() {
 write_config() {
   local host cpus mem
   host=$(hostname -s)
-  cpus=$(nproc)
+  cpus=$(nproc --all)  # not `nproc`: the starting process may be pinned to fewer CPUs
   mem=$(( $(awk '/MemTotal/ {print $2}' /proc/meminfo) / 1024 - 1024 ))  # MiB, leaving 1 GiB to the OS
   mkdir -p "$DIR/state" "$DIR/spool" "$DIR/log"
   # No cgroups, no accounting database: what a container or a laptop can run.
@@ -93,8 +93,10 @@ start() {
   fi
   write_config
   start_munge
-  slurmctld -f "$CONF"
-  slurmd -f "$CONF"
+  # The daemons (and so the jobs) get every CPU, whatever this shell was pinned to.
+  local all="0-$(( $(nproc --all) - 1 ))"
+  taskset -c "$all" slurmctld -f "$CONF"
+  taskset -c "$all" slurmd -f "$CONF"
   for _ in $(seq 100); do
     if SLURM_CONF=$CONF sinfo -h -o '%T' 2>/dev/null | grep -qx idle; then
       echo "export SLURM_CONF=$CONF"; return

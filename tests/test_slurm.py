@@ -37,7 +37,8 @@ def slurm(tmp_path_factory):
     env = {**os.environ, "LAYERBVH_SLURM_DIR": str(folder), "LAYERBVH_SLURMCTLD_PORT": str(_free_port()),
            "LAYERBVH_SLURMD_PORT": str(_free_port())}
     script = str(ROOT / "scripts" / "slurm_local.sh")
-    r = subprocess.run(["bash", script, "start"], env=env, capture_output=True, text=True, timeout=300)
+    r = subprocess.run(["bash", script, "start"], env=env, capture_output=True, text=True, timeout=300,
+                       preexec_fn=lambda: os.sched_setaffinity(0, range(os.cpu_count() or 1)))
     assert r.returncode == 0, r.stderr
     env["SLURM_CONF"] = r.stdout.strip().split("=", 1)[1]
     yield env
@@ -141,3 +142,23 @@ def test_a_killed_sweep_resumes_from_its_keys(slurm, tmp_path):
     assert again.returncode == 0, err
     assert f"reused {stored}" in text, text
     assert all(r["status"] == "ok" for r in _rows(out))
+
+
+@pytest.mark.parametrize("args, env_path, says", [
+    (["--slurm-walltime", "1h"], None, "--slurm-walltime: not a SLURM time: '1h'"),
+    (["--slurm-jobs", "0"], None, "--slurm-jobs must be >= 1"),
+    ([], "bin-only", "--cluster slurm: sbatch is not on PATH"),
+])
+def test_bad_slurm_options_get_one_line(tmp_path, args, env_path, says):
+    """Refused before anything is submitted or written (needs no SLURM)."""
+    env = dict(os.environ)
+    if env_path:
+        env["PATH"] = str(Path(sys.executable).parent)  # the venv's bin: no sbatch there
+    elif shutil.which("sbatch") is None:
+        pytest.skip("the option checks after the sbatch check need sbatch on PATH")
+    r = subprocess.run([sys.executable, "-m", "layerbvh_mitsuba.cli", "sweep", str(SCENES / "cbox.xml"), "--job",
+                        "compare", "--out", str(tmp_path / "sw"), "--cluster", "slurm", *args],
+                       env=env, capture_output=True, text=True, timeout=120)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and says in lines[0], r.stderr
+    assert not (tmp_path / "sw").exists()

@@ -223,6 +223,32 @@ def benchmarks_section(doc: dict, fig_rel: str) -> str:
     return "\n".join(parts)
 
 
+def merge_documents(docs: list) -> dict:
+    """Several locality.json documents (single runs, or sweeps' merged ones) as one merged document,
+    a row kept once per (scene, kind, mode, warp, preset, treelet height): the first document's wins."""
+    merged = {"command": " ; ".join(d["command"] for d in docs), "results": [], "checks": [], "verdict": [],
+              "presets": {}, "preset_lines": [], "scenes": {}, "machine": docs[0].get("machine")}
+    seen = set()
+    for d in docs:
+        if "scenes" not in d:  # one `layerbvh locality` run: its scene by name
+            name = _slug(d["scene"])
+            d = {**d, "results": [{**r, "scene": name} for r in d["results"]],
+                 "checks": [{**c, "scene": name} for c in d["checks"]],
+                 "scenes": {name: {k: d[k] for k in ("resolution", "spp", "triangles", "kinds", "sampled")}}}
+        for r in d["results"]:
+            key = tuple(r[k] for k in ("scene", "kind", "mode", "warp", "preset", "treelet_height"))
+            if key not in seen:
+                seen.add(key)
+                merged["results"].append(r)
+        merged["checks"] += d["checks"]
+        merged["verdict"] += d.get("verdict", [])
+        merged["presets"].update(d["presets"])
+        merged["preset_lines"] = list(dict.fromkeys(merged["preset_lines"] + d["preset_lines"]))
+        for name, info in d["scenes"].items():
+            merged["scenes"].setdefault(name, info)
+    return merged
+
+
 def _scenes(doc: dict) -> list:
     return list(doc["scenes"]) if "scenes" in doc else [Path(doc["scene"]).name]
 

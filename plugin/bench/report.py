@@ -320,8 +320,9 @@ def main(argv=None) -> int:
     p.add_argument("--figures", default=str(ROOT / "docs" / "bench"), help="folder for the plots")
     p.add_argument("--converge", action="append", default=[], help="a `layerbvh converge` output folder (repeatable)")
     p.add_argument("--readme", action="store_true", help="also splice the headline into README.md")
-    p.add_argument("--locality", help="a locality.json (`layerbvh locality`, or a locality sweep's merged one): its "
-                                      "section; without --bench only that section of the existing document is replaced")
+    p.add_argument("--locality", action="append", default=[],
+                   help="a locality.json (`layerbvh locality`, or a locality sweep's merged one; repeatable, merged): "
+                        "its section; without --bench only that section of the existing document is replaced")
     args = p.parse_args(argv)
     if not args.bench and not args.locality:
         p.error("give --bench (the whole document) or --locality (its locality section)")
@@ -330,8 +331,8 @@ def main(argv=None) -> int:
         out.resolve().parent) else figs.resolve()
     loc = None
     if args.locality:
-        from .locality import write_figures
-        doc = load(args.locality)
+        from .locality import merge_documents, write_figures
+        doc = merge_documents([load(f) for f in args.locality])
         write_figures(doc, figs)
         loc = locality_block(doc, str(rel))
         if not args.bench:
