@@ -32,5 +32,10 @@ $LAYERBVH sweep scenes/paper_mix.xml out/stress_spheres_1m/scene.xml --job local
     --rays camera,first_bounce_diffuse,diffuse,shadow --treelet-heights 4,8 --res 512 512 --spp 1 --workers 1 \
     --rerun --no-progress --out out/sweep_locality
 cp out/sweep_locality/locality.json docs/bench/locality.json
+# ... and against the warp (packet) width on the incoherent kinds (about 12 minutes).
+$LAYERBVH sweep scenes/paper_mix.xml out/stress_spheres_1m/scene.xml --job locality --rays diffuse,shadow \
+    --treelet-heights 8 --warp 8,16,32 --res 512 512 --spp 1 --workers 1 --rerun --no-progress --out out/sweep_locality_w
+cp out/sweep_locality_w/locality.json docs/bench/locality_warps.json
 $PY scripts/report.py --bench docs/bench/bench_meshes.json --bench docs/bench/bench.json \
-    --scaling docs/bench/scaling.json --converge docs/converge/paper_mix --locality docs/bench/locality.json --readme
+    --scaling docs/bench/scaling.json --converge docs/converge/paper_mix --locality docs/bench/locality.json \
+    --locality docs/bench/locality_warps.json --readme
