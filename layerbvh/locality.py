@@ -183,8 +183,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     assert counts[0].sum() == tally[:, 0].sum() == levels_hit.sum(), "the cache model lost transactions"
     prim = np.full(n_all, MISS, np.int64)
     t = np.full(n_all, np.inf, np.float32)
-    valid = np.zeros(n_all, bool)
-    valid[np.flatnonzero(valid_rays(o, d, tmax))] = True
+    valid = valid_rays(o, d, tmax)
     prim[valid] = ist[valid, mt.I_PRIM]
     hit = prim != MISS
     t[hit] = fst[hit, mt.F_T]

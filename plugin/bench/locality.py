@@ -291,11 +291,11 @@ def plot_png(doc: dict) -> bytes:
             width = 0.8 / max(len(bars), 1)
             ticks, labels = [], []
             for g, h in enumerate(heights):
-                for b, (mode, w) in enumerate(bars):
-                    r = next((r for r in sel if r["treelet_height"] == h and r["mode"] == mode and r["warp"] == w), None)
-                    if r is None:
-                        continue
-                    x = g + (b - (len(bars) - 1) / 2) * width
+                here = [(mode, w) for mode, w in bars
+                        if any(r["treelet_height"] == h and r["mode"] == mode and r["warp"] == w for r in sel)]
+                for b, (mode, w) in enumerate(here):  # a group's bars centred on it, however many it has
+                    r = next(r for r in sel if r["treelet_height"] == h and r["mode"] == mode and r["warp"] == w)
+                    x = g + (b - (len(here) - 1) / 2) * width
                     node, tri = r["node_dram_bytes_per_ray"], r["triangle_dram_bytes_per_ray"]
                     values = (node, tri, r["dram_bytes_per_ray"] - node - tri, r["sort_bytes_per_ray"])
                     bottom = 0.0
