@@ -13,7 +13,7 @@ from .inputs import DEFAULT_TREELET_HEIGHT
 from .layout import LayerLayout
 from .memmodel import Caches, Preset, preset as named_preset, with_segment
 from .state import MISS
-from .wavefront import ENTRY_BYTES, MODES, TAIL_FRACTION, TAIL_RAYS
+from .wavefront import ENTRY_BYTES, MODES, TAIL_FRACTION, TAIL_RAYS, takes_tail
 
 # Fields a wavefront step carries per ray (state.RayState without the work counters, as timed
 # runs trace: t u v prim link sp slot treelet), 4 bytes each.
@@ -90,7 +90,8 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     d = np.ascontiguousarray(d, np.float32)
     tmax = np.ascontiguousarray(np.broadcast_to(np.asarray(tmax, np.float32), (len(o),)))
     n_all = len(o)
-    order = np.flatnonzero(valid_rays(o, d, tmax)).astype(np.int64)
+    valid = valid_rays(o, d, tmax)
+    order = np.flatnonzero(valid).astype(np.int64)
     n = len(order)
     nodes_f, nodes_u, tris_f, tris_u, tris_d, tf, nt = mt.layout_views(lay)
     fst = np.zeros((n_all, mt.F_COLS), np.float32)
@@ -107,7 +108,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     g_link = np.zeros((n_all if layer else 1, cap_g), np.uint32)
     g_t = np.zeros((n_all if layer else 1, cap_g), np.float32)
 
-    local_words = preset.units * preset.resident_warps * (cap_max + 1) * warp
+    local_words = lanes_held * (cap_max + 1)
     sizes = {"nodes": lay.nodes.nbytes, "tris": lay.tris.nbytes, "treelet_first": lay.treelet_first.nbytes,
              "node_treelet": lay.node_treelet.nbytes, "stack_link": n_all * cap_g * 4, "stack_t": n_all * cap_g * 4,
              "local_link": local_words * 4, "local_t": local_words * 4}
@@ -160,7 +161,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
         finished = lay.treelet_count
         n0 = n_active = n
         while n_active > 0:
-            if n_active <= max(tail_rays, int(tail_fraction * n0)) and kernels > 0:
+            if takes_tail(n_active, n0, kernels, tail_rays, tail_fraction):
                 launch(order, False, True, cap_g)
                 kernels += 1
                 break
@@ -183,7 +184,6 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     assert counts[0].sum() == tally[:, 0].sum() == levels_hit.sum(), "the cache model lost transactions"
     prim = np.full(n_all, MISS, np.int64)
     t = np.full(n_all, np.inf, np.float32)
-    valid = valid_rays(o, d, tmax)
     prim[valid] = ist[valid, mt.I_PRIM]
     hit = prim != MISS
     t[hit] = fst[hit, mt.F_T]

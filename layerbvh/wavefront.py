@@ -21,6 +21,12 @@ TAIL_RAYS = 2048
 TAIL_FRACTION = 0.25
 
 
+def takes_tail(n_active: int, n0: int, steps: int, tail_rays: int, tail_fraction: float) -> bool:
+    """Whether the rays still active after `steps` wavefront steps (of n0) are finished by one
+    per-ray kernel (the tail) instead of more steps: the rule `trace` runs and the locality replay follows."""
+    return steps > 0 and n_active <= max(tail_rays, int(tail_fraction * n0))
+
+
 def _sync():
     dr.sync_thread()
     return time.perf_counter()
@@ -70,7 +76,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, mode: str, any_hit: bool, tail_
     while n_active > 0:
         stats.active_per_step.append(n_active)
         ta = _sync()
-        if n_active <= max(tail_rays, int(tail_fraction * n0)) and stats.steps > 0:
+        if takes_tail(n_active, n0, stats.steps, tail_rays, tail_fraction):
             # Same nearest-first order as the steps, so the same hits and work counts.
             out, done, _, _ = walk(m, lay, rays, s, (st_link, st_t, cap_global), cap_global, False, any_hit, count_work)
             res.write(out, done)
