@@ -12,6 +12,7 @@ from .inputs import RayBatch
 AUTO = "auto"
 AUTO_WARMUP_RAYS = 4096  # compiles both modes' kernels before anything is timed
 AUTO_ROUNDS = 3  # timed rounds, alternating which mode goes first; the median decides
+KEPT = "kept from an earlier run: "  # how a loaded decision's reason begins
 AUTO_MARGIN = 0.05  # layer_sorted must be this much faster: it also needs far more memory
 # What is decided without timing, per backend. On the CPU (BENCHMARKS.md: 2-core Zen 3, AVX2)
 # sorting lost on every camera and shadow ray set (0.59-0.84x per_ray) and on every set below
@@ -52,10 +53,12 @@ class AutoPolicy:
         self.calibration_s = 0.0
 
     def load(self, choices: dict) -> None:
-        """Adopt timed decisions from an earlier run (same scene, BVH, device: the caller's key)."""
+        """Adopt timed decisions from an earlier run (same scene, BVH, device: the caller's key).
+        Their reason says so once, however often the decision was kept, saved and loaded again."""
         for key, c in choices.items():
             if c.get("mode") in ("per_ray", "layer_sorted"):
-                self.choices.setdefault(key, {**c, "reason": f"kept from an earlier run: {c.get('reason', '')}"})
+                timed = c.get("reason", "").removeprefix(KEPT)
+                self.choices.setdefault(key, {**c, "reason": KEPT + timed})
 
     def rule(self, any_hit: bool, hint: str, rays: int, treelets: int) -> dict | None:
         """The untimed decision for this kind of batch, or None when it must be timed."""

@@ -56,6 +56,10 @@ def test_auto_returns_the_same_hits_and_records_its_choice(procedural):
     again = layerbvh.AutoPolicy(min_rays=1 << 16)
     again.load(policy.choices)
     assert again.known(False, "bounce", 70_000, bvh.stats.treelets) == choice["mode"]
+    # ... and saved and loaded again, each run: the reason says "kept" once (it grew a prefix a run).
+    third = layerbvh.AutoPolicy(min_rays=1 << 16)
+    third.load(again.choices)
+    assert all(c["reason"].count("kept from an earlier run") == 1 for c in third.choices.values()), third.choices
     assert layerbvh.AutoPolicy().known(False, "bounce", 70_000, bvh.stats.treelets) == "per_ray", \
         "the CPU rule: below 2^19 rays per_ray"
 
