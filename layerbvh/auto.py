@@ -57,7 +57,9 @@ class AutoPolicy:
         Their reason says so once, however often the decision was kept, saved and loaded again."""
         for key, c in choices.items():
             if c.get("mode") in ("per_ray", "layer_sorted"):
-                timed = c.get("reason", "").removeprefix(KEPT)
+                timed = c.get("reason", "")
+                while timed.startswith(KEPT):  # files kept before this fix may carry it many times
+                    timed = timed[len(KEPT):]
                 self.choices.setdefault(key, {**c, "reason": KEPT + timed})
 
     def rule(self, any_hit: bool, hint: str, rays: int, treelets: int) -> dict | None:
