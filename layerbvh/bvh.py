@@ -8,7 +8,7 @@ import drjit as dr
 
 from . import backend as be
 from .auto import AUTO, AutoPolicy
-from .inputs import DEFAULT_LEAF_SIZE, DEFAULT_TREELET_HEIGHT, RayBatch, check_mesh, check_param, ray_batch
+from .inputs import DEFAULT_BRANCHING, DEFAULT_LEAF_SIZE, DEFAULT_TREELET_HEIGHT, RayBatch, check_mesh, check_param, ray_batch
 from .instances import Group, Instance, InstancedParts, check_instanced, check_instances, instanced_layout
 from .layout import LayerLayout, check_layout, load_builder_kernels, to_layer_layout
 from .sah import BinaryBVH, build_binned_sah, triangle_bounds
@@ -52,6 +52,8 @@ class Occlusion:
 class LayerBVH:
     """A binned-SAH BVH over triangles, laid out as a Layer BVH (see layout.LayerLayout).
 
+    `branching` is the number of children per inner node: 2 (the binary BVH) or 4, 8 (collapsed
+    from it, layerbvh.collapse); `treelet_height` counts levels of that tree.
     `batch_rays` bounds how many rays one kernel pass holds (the work memory); `tail_rays`: when
     this few rays (or `tail_fraction` of a batch) are left in the layer modes, one per-ray kernel
     finishes them; `auto_policy`
@@ -62,8 +64,10 @@ class LayerBVH:
 
     def __init__(self, vertices, faces, treelet_height=DEFAULT_TREELET_HEIGHT, leaf_size=DEFAULT_LEAF_SIZE, backend=None, batch_rays=BATCH_RAYS,
                  tail_rays=TAIL_RAYS, auto_policy: AutoPolicy | None = None, tail_fraction: float = TAIL_FRACTION,
-                 groups: list[Group] | None = None, instances: list[Instance] | None = None):
+                 groups: list[Group] | None = None, instances: list[Instance] | None = None,
+                 branching: int = DEFAULT_BRANCHING):
         treelet_height = check_param("treelet_height", treelet_height)
+        self.branching = branching = check_param("branching", branching)
         self.batch_rays = check_param("batch_rays", batch_rays)
         self.tail_rays = check_param("tail_rays", tail_rays)
         if not 0.0 <= tail_fraction <= 1.0:
@@ -84,7 +88,8 @@ class LayerBVH:
             t0 = time.perf_counter()
             self.binary = build_binned_sah(*triangle_bounds(v, f), leaf_size) if len(f) else None
             t1 = time.perf_counter()
-            self.layout: LayerLayout | None = to_layer_layout(self.binary, v, f, treelet_height) if len(f) else None
+            self.layout: LayerLayout | None = to_layer_layout(self.binary, v, f, treelet_height, branching) \
+                if len(f) else None
             t2 = time.perf_counter()
             unique = placed = len(f)
         else:
@@ -96,14 +101,14 @@ class LayerBVH:
             placed = sum(len(self.groups[i.group].faces) for i in self.instances)
             kernel_load_s = load_builder_kernels() if unique else 0.0
             t0 = time.perf_counter()
-            self.layout, self.parts = instanced_layout(self.groups, self.instances, treelet_height, leaf_size)
+            self.layout, self.parts = instanced_layout(self.groups, self.instances, treelet_height, leaf_size, branching)
             t1 = t2 = time.perf_counter()  # builds and lays out group by group: all of it is build time
         lay = self.layout
         self.device = None if lay is None else lay.to_device(self.m)
         self.stats = BVHStats(
             triangles=unique, nodes=lay.node_count if lay else 0, leaves=lay.leaf_count if lay else 0,
             treelets=lay.treelet_count if lay else 0, depth=lay.depth if lay else 0,
-            treelet_height=treelet_height, leaf_size=leaf_size,
+            treelet_height=treelet_height, leaf_size=leaf_size, branching=branching,
             treelet_node_counts=lay.treelet_node_counts.tolist() if lay else [],
             bytes=lay.array_bytes() if lay else {}, build_s=t1 - t0, layout_s=t2 - t1,
             kernel_load_s=kernel_load_s, groups=len(self.groups) if self.groups is not None else 0,
@@ -219,17 +224,19 @@ class LayerBVH:
 def build(vertices, faces, treelet_height: int = DEFAULT_TREELET_HEIGHT, leaf_size: int = DEFAULT_LEAF_SIZE,
           backend: str | None = None,
           batch_rays: int = BATCH_RAYS, tail_rays: int = TAIL_RAYS, auto_policy: AutoPolicy | None = None,
-          tail_fraction: float = TAIL_FRACTION) -> LayerBVH:
+          tail_fraction: float = TAIL_FRACTION, branching: int = DEFAULT_BRANCHING) -> LayerBVH:
     """Build a Layer BVH over a triangle mesh: vertices (V, 3) float, faces (F, 3) int.
-    `batch_rays` bounds how many rays one trace call processes at once (peak memory)."""
+    `branching` (2, 4, 8): children per inner node; `batch_rays` bounds how many rays one trace
+    call processes at once (peak memory)."""
     return LayerBVH(vertices, faces, treelet_height=treelet_height, leaf_size=leaf_size, backend=backend,
-                    batch_rays=batch_rays, tail_rays=tail_rays, auto_policy=auto_policy, tail_fraction=tail_fraction)
+                    batch_rays=batch_rays, tail_rays=tail_rays, auto_policy=auto_policy, tail_fraction=tail_fraction,
+                    branching=branching)
 
 
 def build_instanced(groups: list[Group], instances: list[Instance], treelet_height: int = DEFAULT_TREELET_HEIGHT,
                     leaf_size: int = DEFAULT_LEAF_SIZE, backend: str | None = None, batch_rays: int = BATCH_RAYS,
                     tail_rays: int = TAIL_RAYS, auto_policy: AutoPolicy | None = None,
-                    tail_fraction: float = TAIL_FRACTION) -> LayerBVH:
+                    tail_fraction: float = TAIL_FRACTION, branching: int = DEFAULT_BRANCHING) -> LayerBVH:
     """Build a two-level Layer BVH: each group's mesh (layerbvh.Group) gets its own BVH, stored
     once however many instances (layerbvh.Instance: group index, object -> world affine map)
     place it, under a top-level BVH over the instances' world boxes (layerbvh.instances).
@@ -238,4 +245,4 @@ def build_instanced(groups: list[Group], instances: list[Instance], treelet_heig
     index, then the lower primitive id, in every mode."""
     return LayerBVH(None, None, treelet_height=treelet_height, leaf_size=leaf_size, backend=backend,
                     batch_rays=batch_rays, tail_rays=tail_rays, auto_policy=auto_policy, tail_fraction=tail_fraction,
-                    groups=groups, instances=instances)
+                    groups=groups, instances=instances, branching=branching)

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import drjit as dr
 
 from .layout import (INST_FLOATS, INST_ROOT, INST_TO_OBJECT, NODE_BOX_HI, NODE_BOX_LO, NODE_FLOATS, NODE_LINK, TRI_FACE,
-                     TRI_FLOATS, TRI_NORMAL, TRI_VERTEX)
+                     TRI_FLOATS, TRI_NORMAL, TRI_VERTEX, NodeFormat)
 
 # Ize 2013: scaling a box's far distance by 1 + 2*gamma(3) makes the float slab test conservative.
 _GAMMA3 = 3 * 2.0 ** -24 / (1 - 3 * 2.0 ** -24)
@@ -107,6 +107,27 @@ def hit_children(m, nodes, node, ray: Ray, t_best, active):
         out.append((hit, tn))
     links = [dr.reinterpret_array(m.UInt32, rec[NODE_LINK[side]]) for side in (0, 1)]
     return out[0][0], out[1][0], out[0][1], out[1][1], links[0], links[1]
+
+
+def hit_children_wide(m, nodes, node, ray: Ray, t_best, active, fmt: NodeFormat):
+    """Slab-test all child boxes of a wide `node` (record layout `fmt`): per child (hit, entry
+    distance, link), as three lists. The same test, in the same float operations, as
+    hit_children, so a box is hit (and at the same distance) whatever the branching. Empty slots
+    hold EMPTY_BOX, which no ray aims at (and whose link is an empty leaf)."""
+    rec = dr.gather(m.ArrayXf, nodes, node, active, shape=(fmt.floats, dr.width(node)))
+    hits, ts, links = [], [], []
+    for c in range(fmt.branching):
+        tn = m.Float(0.0)
+        tf = m.Float(dr.inf)
+        for a in range(3):
+            t0 = (rec[fmt.lo[c][a]] - ray.o[a]) * ray.inv[a]
+            t1 = (rec[fmt.hi[c][a]] - ray.o[a]) * ray.inv[a]
+            tn = dr.maximum(tn, dr.minimum(t0, t1))
+            tf = dr.minimum(tf, dr.maximum(t0, t1))
+        hits.append(active & (tn <= tf * FAR_SCALE) & (tn <= t_best * FAR_SCALE))
+        ts.append(tn)
+        links.append(dr.reinterpret_array(m.UInt32, rec[fmt.link[c]]))
+    return hits, ts, links
 
 
 def f64_from_halves(m, lo, hi):

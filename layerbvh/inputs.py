@@ -7,7 +7,7 @@ import drjit as dr
 import numpy as np
 
 from . import backend as be
-from .layout import MAX_TRIANGLES
+from .layout import BRANCHINGS, MAX_TRIANGLES
 
 
 def _first_bad_row(mask: np.ndarray) -> int:
@@ -52,6 +52,9 @@ def check_mesh(vertices, faces, name: str = "mesh") -> tuple[np.ndarray, np.ndar
 # of both per_ray and the layer modes across the benchmark's ray sets).
 DEFAULT_TREELET_HEIGHT = 8
 DEFAULT_LEAF_SIZE = 4
+# Children per inner node (layout.BRANCHINGS: 2, the paper's binary BVH, or 4, 8 collapsed
+# from it); the default is the fastest measured (PERFORMANCE.md entry 27).
+DEFAULT_BRANCHING = 2
 
 # Bounds (inclusive) of the build and trace parameters: the one place they are defined.
 PARAM_RANGES = {
@@ -63,10 +66,15 @@ PARAM_RANGES = {
 
 
 def check_param(name: str, value) -> int:
-    """`value` as an int if it is an integer within PARAM_RANGES[name], else a ValueError."""
-    lo, hi = PARAM_RANGES[name]
+    """`value` as an int if it is an integer within PARAM_RANGES[name] (branching: one of
+    layout.BRANCHINGS), else a ValueError."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
         raise ValueError(f"{name} must be an integer, got {value!r}")
+    if name == "branching":
+        if value not in BRANCHINGS:
+            raise ValueError(f"branching must be one of {', '.join(map(str, BRANCHINGS))}, got {value}")
+        return int(value)
+    lo, hi = PARAM_RANGES[name]
     if not lo <= value <= hi:
         raise ValueError(f"{name} must be in [{lo}, {hi}], got {value}")
     return int(value)

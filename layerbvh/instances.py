@@ -7,9 +7,8 @@ import numpy as np
 
 from .inputs import check_mesh
 from .layout import (EXIT_BIT, INST_FLOATS, INST_GROUP, INST_ROOT, INST_TO_OBJECT, INSTANCE_TAG, LEAF_BIT,
-                     LEAF_FIRST, LEAF_FIRST_MASK, LEAF_UINTS, LEAVE, MAX_INSTANCES, MAX_TRIANGLES, NODE_BOX_HI,
-                     NODE_BOX_LO, NODE_FLOATS, NODE_LINK, PAYLOAD_MASK, TRI_FLOATS, LayerLayout, check_layout,
-                     to_layer_layout)
+                     LEAF_FIRST, LEAF_FIRST_MASK, LEAF_UINTS, LEAVE, MAX_INSTANCES, MAX_TRIANGLES,
+                     PAYLOAD_MASK, TRI_FLOATS, LayerLayout, check_layout, to_layer_layout)
 from .sah import build_binned_sah, triangle_bounds
 
 # An instance whose linear part has a larger condition number than this is refused: its
@@ -114,11 +113,13 @@ class InstancedParts:
 def _shifted(lay: LayerLayout, nodes: int, treelets: int, tris: int) -> tuple[np.ndarray, np.ndarray]:
     """`lay`'s node and leaf records with every link moved by the given offsets (node links by
     `nodes`, exits by `treelets`, leaf triangle ranges by `tris`)."""
-    rec = lay.nodes.reshape(-1, NODE_FLOATS).copy()
-    links = rec[:, NODE_LINK[0]:NODE_LINK[1] + 1].view(np.uint32)
-    leaf = (links & LEAF_BIT) != 0
-    exit_ = ~leaf & ((links & EXIT_BIT) != 0)
-    node = ~leaf & ~exit_
+    fmt = lay.format
+    rec = lay.records().copy()
+    links = rec[:, fmt.link[0]:fmt.link[-1] + 1].view(np.uint32)
+    used = np.arange(fmt.branching)[None, :] < lay.children()[:, None]  # empty slots stay as they are
+    leaf = used & ((links & LEAF_BIT) != 0)
+    exit_ = used & ~leaf & ((links & EXIT_BIT) != 0)
+    node = used & ~leaf & ~exit_
     links[node] += np.uint32(nodes)
     links[exit_] = EXIT_BIT | ((links[exit_] & PAYLOAD_MASK) + np.uint32(treelets))
     first = links[leaf] & LEAF_FIRST_MASK
@@ -129,7 +130,7 @@ def _shifted(lay: LayerLayout, nodes: int, treelets: int, tris: int) -> tuple[np
 
 
 def instanced_layout(groups: list[Group], instances: list[Instance], height: int,
-                     leaf_size: int) -> tuple[LayerLayout | None, InstancedParts]:
+                     leaf_size: int, branching: int = 2) -> tuple[LayerLayout | None, InstancedParts]:
     """The combined layout of checked groups and instances (check_instances): the top level's
     treelets first (its leaves are instance links), then each group's layout once, its links
     moved into the combined arrays; one instance record per instance. None when nothing can be
@@ -141,14 +142,15 @@ def instanced_layout(groups: list[Group], instances: list[Instance], height: int
             boxes.append(None)
             continue
         lo, hi = triangle_bounds(grp.vertices, grp.faces)
-        group_layouts.append(to_layer_layout(build_binned_sah(lo, hi, leaf_size), grp.vertices, grp.faces, height))
+        group_layouts.append(to_layer_layout(build_binned_sah(lo, hi, leaf_size), grp.vertices, grp.faces, height,
+                                             branching))
         boxes.append((lo.min(0).astype(np.float64), hi.max(0).astype(np.float64)))
     traced = np.array([k for k, inst in enumerate(instances) if group_layouts[inst.group] is not None], np.int64)
     if len(traced) == 0:
         return None, InstancedParts(None, group_layouts, [], [], [], traced)
     w = [world_box(instances[k].to_world, *boxes[instances[k].group]) for k in traced]
     top_b = build_binned_sah(np.array([b[0] for b in w]), np.array([b[1] for b in w]), 1)
-    top = to_layer_layout(replace(top_b, perm=traced[top_b.perm]), None, None, height)
+    top = to_layer_layout(replace(top_b, perm=traced[top_b.perm]), None, None, height, branching)
 
     nodes, leaves, tris = [top.nodes], [top.leaves], []
     tre_first, node_tre, leaf_tre = [top.treelet_first[:-1]], [top.node_treelet], [top.leaf_treelet]
@@ -184,7 +186,7 @@ def instanced_layout(groups: list[Group], instances: list[Instance], height: int
         tris=np.concatenate(tris) if tris else np.zeros(0, np.float32),
         treelet_first=np.concatenate(tre_first + [np.array([n_nodes], np.uint32)]).astype(np.uint32),
         node_treelet=np.concatenate(node_tre).astype(np.uint32), leaf_treelet=np.concatenate(leaf_tre).astype(np.uint32),
-        depth=depth, height=height, instances=rec.reshape(-1))
+        depth=depth, height=height, branching=branching, instances=rec.reshape(-1))
     return combined, InstancedParts(top, group_layouts, node_off, tre_off, tri_off, traced)
 
 
@@ -198,15 +200,16 @@ def check_instanced(parts: InstancedParts, groups: list[Group], instances: list[
     if parts.top is None:
         return
     check_layout(parts.top, 0, instance_ids=parts.traced)
-    rec = parts.top.nodes.reshape(-1, NODE_FLOATS)
+    fmt = parts.top.format
+    rec = parts.top.records()
     links = parts.top.links()
-    for side in (0, 1):
-        held = (links[:, side] >= INSTANCE_TAG) & (links[:, side] < np.uint32(LEAVE))
+    used = np.arange(fmt.branching)[None, :] < parts.top.children()[:, None]
+    for side in range(fmt.branching):
+        held = used[:, side] & (links[:, side] >= INSTANCE_TAG) & (links[:, side] < np.uint32(LEAVE))
         for i in np.nonzero(held)[0]:
             k = int(links[i, side] & LEAF_FIRST_MASK)
             grp = groups[instances[k].group]
             lo, hi = triangle_bounds(grp.vertices, grp.faces)
             wlo, whi = world_box(instances[k].to_world, lo.min(0).astype(np.float64), hi.max(0).astype(np.float64))
-            assert np.all(rec[i, NODE_BOX_LO[side]:NODE_BOX_LO[side] + 3] <= wlo) and \
-                np.all(rec[i, NODE_BOX_HI[side]:NODE_BOX_HI[side] + 3] >= whi), \
+            assert np.all(rec[i, list(fmt.lo[side])] <= wlo) and np.all(rec[i, list(fmt.hi[side])] >= whi), \
                 f"top-level node {i} child {side}: box does not hold instance {k}"

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from .collapse import collapse
 from .sah import BinaryBVH, build_binned_sah, triangle_bounds
 
 # Child links (uint32). Bit 31: BVH leaf, carrying its triangle range (leaf_link), so reaching a
@@ -38,12 +39,61 @@ INST_ROOT = 12          # uint32: exit link into the root treelet of the instanc
 INST_GROUP = 13         # uint32: the instance's group (for tools and checks)
 INST_FLOATS = 16        # slots 14, 15 unused; total: 64 bytes, one cache line
 
-# Inner-node record, float32 slots (uint32 bits where noted). Index [side] = left (0), right (1).
+# Binary inner-node record (branching 2, the paper's), float32 slots (uint32 bits where noted).
+# Index [side] = left (0), right (1).
 NODE_BOX_LO = (0, 6)    # 3 floats: child box minimum (x, y, z)
 NODE_BOX_HI = (3, 9)    # 3 floats: child box maximum
 NODE_LINK = (12, 13)    # uint32: child link (LEAF_BIT / EXIT_BIT / node index)
 NODE_DEPTH = 14         # float: depth of the node in the BVH (read by the invariant check only)
-NODE_FLOATS = 16        # slot 15 unused; total: 64 bytes, one cache line
+NODE_CHILDREN = 15      # float: number of children (2; read by the invariant check only)
+NODE_FLOATS = 16        # total: 64 bytes, one cache line
+
+# Wide inner-node record (branching K = 4 or 8), float32 slots, structure of arrays so that one
+# packet gather brings each bound of all K children as K consecutive floats:
+#   [0, K)        child box xmin[k]           [3K, 4K)   xmax[k]
+#   [K, 2K)       ymin[k]                     [4K, 5K)   ymax[k]
+#   [2K, 3K)      zmin[k]                     [5K, 6K)   zmax[k]
+#   [6K, 7K)      uint32 child link[k] (as NODE_LINK)
+#   7K            float: depth of the node (invariant check only)
+#   7K + 1        float: number of children c (invariant check only); slots c .. K-1 are empty
+#   up to a multiple of 16 floats: unused
+# total: 128 bytes (K = 4, two cache lines), 256 bytes (K = 8, four cache lines)
+BRANCHINGS = (2, 4, 8)
+# An empty child slot: an empty leaf (so reaching it, should a ray ever hit its box, tests no
+# triangle) whose box is a point far outside any scene, hit only by a ray aimed at it exactly.
+EMPTY_LINK = np.uint32(LEAF_BIT)
+EMPTY_BOX = (3.0e38, -3.0e38, 2.0e38)
+
+
+@dataclass(frozen=True)
+class NodeFormat:
+    """Where each field of an inner-node record of one branching sits (float32 slot indices)."""
+
+    branching: int
+    lo: tuple     # lo[k][axis]: child k's box minimum on axis
+    hi: tuple     # hi[k][axis]
+    link: tuple   # link[k]: child k's link
+    depth: int
+    children: int
+    floats: int   # record size in float32 slots (a multiple of 16: whole cache lines)
+
+    @property
+    def bytes(self) -> int:
+        return 4 * self.floats
+
+
+def node_format(branching: int) -> NodeFormat:
+    """The record layout of inner nodes with `branching` children (BRANCHINGS)."""
+    k = branching
+    if k == 2:
+        return NodeFormat(2, tuple(tuple(NODE_BOX_LO[s] + a for a in range(3)) for s in (0, 1)),
+                          tuple(tuple(NODE_BOX_HI[s] + a for a in range(3)) for s in (0, 1)),
+                          NODE_LINK, NODE_DEPTH, NODE_CHILDREN, NODE_FLOATS)
+    if k not in BRANCHINGS:
+        raise ValueError(f"branching must be one of {BRANCHINGS}, got {k}")
+    return NodeFormat(k, tuple(tuple(a * k + c for a in range(3)) for c in range(k)),
+                      tuple(tuple((3 + a) * k + c for a in range(3)) for c in range(k)),
+                      tuple(6 * k + c for c in range(k)), 7 * k, 7 * k + 1, -(-(7 * k + 2) // 16) * 16)
 
 # Triangle record, float32 slots, one per triangle in leaf order.
 TRI_VERTEX = (0, 3, 6)  # 3 floats each: v0, v1, v2 (x, y, z)
@@ -85,8 +135,9 @@ def instance_link(index):
 class LayerLayout:
     """The arrays the traversal kernels read, all flat and contiguous.
 
-    nodes           float32 (N*16): one 64-byte record per inner node (fields NODE_*), treelet
-                    0's nodes first, each treelet's nodes breadth-first
+    nodes           float32 (N*F): one record per inner node (node_format(branching): 64 bytes
+                    binary, 128 or 256 bytes wide), treelet 0's nodes first, each treelet's nodes
+                    breadth-first
     leaves          uint32 (L*2): per BVH leaf (first triangle, triangle count: LEAF_*), grouped
                     by the treelet of the leaf's parent, in that treelet's breadth-first order (the
                     kernels read the range from the leaf link; this record is for checks and tools)
@@ -96,7 +147,8 @@ class LayerLayout:
     node_treelet    uint32 (N): treelet of each inner node
     leaf_treelet    uint32 (L): treelet of each leaf's parent
     depth           number of inner-node levels (the longest root-to-leaf path has depth inner nodes)
-    height          treelet height H the layout was cut with
+    height          treelet height H the layout was cut with (in levels of the branching's tree)
+    branching       children per inner node: 2 (the binary BVH) or 4, 8 (collapsed from it)
     instances       float32 (I*16) or None: per instance one 64-byte record (fields INST_*), in an
                     instanced layout (layerbvh.instances), whose first treelets are the top level
     """
@@ -109,7 +161,12 @@ class LayerLayout:
     leaf_treelet: np.ndarray
     depth: int
     height: int
+    branching: int = 2
     instances: np.ndarray | None = None
+
+    @property
+    def format(self) -> NodeFormat:
+        return node_format(self.branching)
 
     @property
     def node_count(self) -> int:
@@ -127,8 +184,18 @@ class LayerLayout:
     def treelet_node_counts(self) -> np.ndarray:
         return np.diff(self.treelet_first)
 
+    def records(self) -> np.ndarray:
+        """The node records as an (N, node_format(branching).floats) float32 view."""
+        return self.nodes.reshape(-1, self.format.floats)
+
     def links(self) -> np.ndarray:
-        return self.nodes.reshape(-1, NODE_FLOATS)[:, NODE_LINK[0]:NODE_LINK[1] + 1].view(np.uint32)
+        """(N, branching) uint32 view of the child links (empty slots hold EMPTY_LINK)."""
+        fmt = self.format
+        return self.records()[:, fmt.link[0]:fmt.link[-1] + 1].view(np.uint32)
+
+    def children(self) -> np.ndarray:
+        """(N,) number of children of each node (the others are empty slots)."""
+        return self.records()[:, self.format.children].astype(np.int64)
 
     def to_device(self, m) -> "DeviceLayout":
         """The arrays on Dr.Jit array module `m` (backend.module)."""
@@ -138,7 +205,7 @@ class LayerLayout:
         return DeviceLayout(
             nodes=m.Float(_aligned(self.nodes)), tris=m.Float(_aligned(self.tris)),
             treelet_first=m.UInt32(self.treelet_first), node_treelet=m.UInt32(self.node_treelet),
-            depth=self.depth, height=self.height, treelet_count=self.treelet_count,
+            depth=self.depth, height=self.height, treelet_count=self.treelet_count, branching=self.branching,
             instances=None if self.instances is None else m.Float(_aligned(self.instances)))
 
     def array_bytes(self) -> dict:
@@ -159,6 +226,7 @@ class DeviceLayout:
     depth: int
     height: int
     treelet_count: int
+    branching: int = 2
     instances: object = None  # instance records (INST_*), None for a layout without instances
 
 
@@ -172,43 +240,57 @@ def _wrap_leaf_root(b: BinaryBVH) -> BinaryBVH:
                      count=np.array([n, n, 0]), depth=np.array([0, 1, 1]), perm=b.perm)
 
 
-def to_layer_layout(b: BinaryBVH, vertices: np.ndarray | None, faces: np.ndarray | None, height: int) -> LayerLayout:
-    """Cut `b` into treelets of at most `height` levels and lay it out for traversal.
+def to_layer_layout(b: BinaryBVH, vertices: np.ndarray | None, faces: np.ndarray | None, height: int,
+                    branching: int = 2) -> LayerLayout:
+    """Collapse `b` to `branching` children per node (collapse.collapse; 2 keeps it binary), cut
+    it into treelets of at most `height` levels of that tree and lay it out for traversal.
 
     With vertices and faces None, `b` is a top level over instances (built with leaf size 1):
     each leaf's link is the instance link of its one primitive (an empty leaf keeps an empty
     triangle range) and there are no triangle records."""
     over_instances = vertices is None
+    fmt = node_format(branching)
     if b.left[0] < 0:
         b = _wrap_leaf_root(b)
     m = len(b.left)
-    inner = b.left >= 0
-    # Treelet roots are the inner nodes at depths 0, H, 2H, ...; nodes are in level order, so
-    # numbering roots in node order numbers treelets breadth-first, and a stable sort by
-    # treelet keeps each treelet's nodes breadth-first.
+    wide = collapse(b, branching)
+    kids, is_node = wide.kids, wide.is_node
+    # Breadth-first over the wide tree, one vectorized pass per level: `bfs` lists its inner
+    # nodes, `leaf_bfs` its leaves, each in the order a breadth-first walk meets them.
+    depth = np.full(m, -1, np.int64)
     parent = np.full(m, -1, np.int64)
-    kids = b.left[inner]
-    parent[kids] = np.nonzero(inner)[0]
-    parent[kids + 1] = np.nonzero(inner)[0]
-    is_root = inner & (b.depth % height == 0)
-    root_id = np.cumsum(is_root) - 1
+    frontier, levels, leaf_levels, d = np.zeros(1, np.int64), [], [], 0
+    while len(frontier):
+        depth[frontier] = d
+        levels.append(frontier)
+        ch = kids[frontier].reshape(-1)
+        par = np.repeat(frontier, branching)
+        real = ch >= 0
+        ch, par = ch[real], par[real]
+        parent[ch] = par
+        depth[ch] = d + 1
+        leaf_levels.append(ch[~is_node[ch]])
+        frontier = ch[is_node[ch]]
+        d += 1
+    bfs = np.concatenate(levels)
+    leaf_bfs = np.concatenate(leaf_levels)
+    # Treelet roots are the inner nodes at depths 0, H, 2H, ...; numbering them in breadth-first
+    # order numbers treelets breadth-first, and a stable sort by treelet keeps each treelet's
+    # nodes breadth-first. Leaves belong to their parent's treelet (a leaf at a treelet boundary
+    # stays with its parent).
+    is_root = np.zeros(m, np.bool_)
+    is_root[bfs] = depth[bfs] % height == 0
+    root_rank = np.full(m, -1, np.int64)
+    root_rank[bfs[is_root[bfs]]] = np.arange(int(is_root.sum()))
     tre = np.full(m, -1, np.int64)
-    for d in range(int(b.depth.max()) + 1):  # one vectorized pass per level
-        at = np.nonzero(b.depth == d)[0]
-        from_parent = tre[parent[at]] if d > 0 else np.zeros(len(at), np.int64)
-        tre[at] = np.where(is_root[at], root_id[at], from_parent)
-    # Leaves belong to their parent's treelet (a leaf at a treelet boundary stays with its parent).
-    leaf = ~inner
-    tre[leaf] = tre[parent[leaf]] if m > 1 else 0
+    for lev in levels:  # parents' levels come first (the root is its own treelet 0)
+        tre[lev] = np.where(is_root[lev], root_rank[lev], tre[np.maximum(parent[lev], 0)])
+    tre[leaf_bfs] = tre[parent[leaf_bfs]]
 
-    inner_ids = np.nonzero(inner)[0]
-    order = inner_ids[np.argsort(tre[inner_ids], kind="stable")]
+    order = bfs[np.argsort(tre[bfs], kind="stable")]
     new_idx = np.full(m, -1, np.int64)
     new_idx[order] = np.arange(len(order))
-    leaf_ids = np.nonzero(leaf)[0]
-    leaf_order = leaf_ids[np.argsort(tre[leaf_ids], kind="stable")]
-    new_leaf = np.full(m, -1, np.int64)
-    new_leaf[leaf_order] = np.arange(len(leaf_order))
+    leaf_order = leaf_bfs[np.argsort(tre[leaf_bfs], kind="stable")]
     n_treelets = int(is_root.sum())
 
     # Triangles in leaf order: leaf i covers tris[first_i : first_i + count_i].
@@ -216,6 +298,8 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray | None, faces: np.ndarray
     first = np.cumsum(counts) - counts
     leaf_first = np.zeros(m, np.int64)
     leaf_first[leaf_order] = first
+    is_leaf = np.zeros(m, np.bool_)
+    is_leaf[leaf_bfs] = True
 
     def leaf_of(child):
         if over_instances:
@@ -224,18 +308,23 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray | None, faces: np.ndarray
         return leaf_link(leaf_first[child].astype(np.uint32), b.count[child].astype(np.uint32))
 
     def link(child, par):
-        out = np.where(leaf[child], leaf_of(child),
+        out = np.where(is_leaf[child], leaf_of(child),
                        np.where(tre[child] != tre[par], EXIT_BIT | tre[child].astype(np.uint32),
                                 new_idx[child].astype(np.uint32)))
         return out.astype(np.uint32)
 
-    l, r = b.left[order], b.left[order] + 1
-    rec = np.zeros((len(order), NODE_FLOATS), np.float32)
-    for side, child in enumerate((l, r)):
-        rec[:, NODE_BOX_LO[side]:NODE_BOX_LO[side] + 3] = b.lo[child]
-        rec[:, NODE_BOX_HI[side]:NODE_BOX_HI[side] + 3] = b.hi[child]
-        rec[:, NODE_LINK[side]] = link(child, order).view(np.float32)
-    rec[:, NODE_DEPTH] = b.depth[order]
+    rec = np.zeros((len(order), fmt.floats), np.float32)
+    bits = rec.view(np.uint32)
+    for k in range(branching):
+        child = kids[order, k]
+        real = child >= 0
+        c = np.maximum(child, 0)
+        for a in range(3):
+            rec[:, fmt.lo[k][a]] = np.where(real, b.lo[c, a], np.float32(EMPTY_BOX[a]))
+            rec[:, fmt.hi[k][a]] = np.where(real, b.hi[c, a], np.float32(EMPTY_BOX[a]))
+        bits[:, fmt.link[k]] = np.where(real, link(c, order), EMPTY_LINK)
+    rec[:, fmt.depth] = depth[order]
+    rec[:, fmt.children] = (kids[order] >= 0).sum(1)
 
     tri_ids = b.perm[_ranges(b.start[leaf_order], counts)]
     tri = np.zeros((0 if over_instances else len(tri_ids), TRI_FLOATS), np.float32)
@@ -250,8 +339,9 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray | None, faces: np.ndarray
         treelet_first=tre_first,
         node_treelet=tre[order].astype(np.uint32),
         leaf_treelet=tre[leaf_order].astype(np.uint32),
-        depth=int(b.depth[inner].max()) + 1,
+        depth=int(depth[bfs].max()) + 1,
         height=height,
+        branching=branching,
     )
 
 
@@ -301,17 +391,25 @@ def check_layout(lay: LayerLayout, n_faces: int, instance_ids: np.ndarray | None
 
     With `instance_ids`, `lay` is a top level over these instances (to_layer_layout with no
     triangles): each must sit in exactly one leaf, in place of the triangle checks."""
-    n, nl, nt, h = lay.node_count, lay.leaf_count, lay.treelet_count, lay.height
-    rec = lay.nodes.reshape(-1, NODE_FLOATS)
+    n, nl, nt, h, k = lay.node_count, lay.leaf_count, lay.treelet_count, lay.height, lay.branching
+    fmt = lay.format
+    rec = lay.records()
     links = lay.links()
     assert n >= 1, "layout has no root node"
     tf = lay.treelet_first.astype(np.int64)
     assert tf[0] == 0 and tf[-1] == n and np.all(np.diff(tf) >= 1), "treelet_first is not a partition of the nodes"
     assert np.array_equal(lay.node_treelet, np.repeat(np.arange(nt), np.diff(tf))), \
         "nodes of a treelet are not contiguous, or treelets are out of order"
+    nchild = lay.children()
+    assert np.all((nchild >= 2) & (nchild <= k)), f"a node has fewer than 2 or more than {k} children"
+    used = np.arange(k)[None, :] < nchild[:, None]  # child slots in use; the rest are empty
+    boxes_lo = np.stack([rec[:, list(fmt.lo[c])] for c in range(k)], 1)  # (N, K, 3)
+    boxes_hi = np.stack([rec[:, list(fmt.hi[c])] for c in range(k)], 1)
+    assert np.all(links[~used] == EMPTY_LINK) and np.all(boxes_lo[~used] == np.float32(EMPTY_BOX)) and \
+        np.all(boxes_hi[~used] == np.float32(EMPTY_BOX)), "an empty child slot is not EMPTY_LINK with EMPTY_BOX"
 
-    is_leaf = (links & LEAF_BIT) != 0
-    is_exit = ~is_leaf & ((links & EXIT_BIT) != 0)
+    is_leaf = used & ((links & LEAF_BIT) != 0)
+    is_exit = used & ~is_leaf & ((links & EXIT_BIT) != 0)
     payload = (links & PAYLOAD_MASK).astype(np.int64)
     lv = lay.leaves.reshape(-1, LEAF_UINTS).astype(np.int64)
     first, count = lv[:, LEAF_FIRST], lv[:, LEAF_COUNT]
@@ -326,26 +424,27 @@ def check_layout(lay: LayerLayout, n_faces: int, instance_ids: np.ndarray | None
     assert np.all(found[is_leaf]), "a leaf link's triangle range is no leaf's"
     payload = np.where(is_leaf, order[pos], payload)
     assert np.all(payload[is_exit] < nt), "an exit link points past the treelet array"
-    inner = ~is_leaf & ~is_exit
+    inner = used & ~is_leaf & ~is_exit
     assert np.all(payload[inner] < n), "a node link points past the node array"
     # Every node and leaf is reached exactly once from the root (node 0).
     child_node = np.where(is_exit, tf[np.minimum(payload, nt)], payload)
-    node_refs = np.bincount(child_node[~is_leaf], minlength=n)
+    node_refs = np.bincount(child_node[used & ~is_leaf], minlength=n)
     assert node_refs[0] == 0 and np.all(node_refs[1:] == 1), "some node is referenced not exactly once"
     assert np.all(np.bincount(payload[is_leaf], minlength=nl) == 1), "some leaf is referenced not exactly once"
     # Links inside a treelet stay inside it; exits go to another treelet's root.
-    owner = np.repeat(lay.node_treelet[:, None], 2, 1).astype(np.int64)
+    owner = np.repeat(lay.node_treelet[:, None], k, 1).astype(np.int64)
     assert np.all(lay.node_treelet[payload[inner]] == owner[inner]), "a node link crosses a treelet without an exit"
     assert np.all(payload[is_exit] != owner[is_exit]), "an exit link points to its own treelet"
     assert np.all(lay.leaf_treelet[payload[is_leaf]] == owner[is_leaf]), "a leaf is not stored with its parent's treelet"
     # Breadth-first inside each treelet: children come after parents; height is respected.
-    parents = np.repeat(np.arange(n)[:, None], 2, 1)
+    parents = np.repeat(np.arange(n)[:, None], k, 1)
     assert np.all(payload[inner] > parents[inner]), "a child node precedes its parent"
-    depth = rec[:, NODE_DEPTH].astype(np.int64)
+    depth = rec[:, fmt.depth].astype(np.int64)
     assert np.all(depth[payload[inner]] == depth[parents[inner]] + 1), "child depth is not parent depth + 1"
     root_depth = depth[tf[:-1]]
     assert np.all(depth - root_depth[lay.node_treelet] < h), "a treelet is taller than its height"
     assert np.all(np.diff(depth[tf[:-1]]) >= 0) or nt == 1, "treelets are not in breadth-first order"
+    assert lay.depth == int(depth.max()) + 1, "the layout's depth is not its number of node levels"
     if instance_ids is not None:
         held = count == INSTANCE_COUNT
         assert np.all(held | (count == 0)), "a top-level leaf holds something else than one instance"
@@ -360,24 +459,23 @@ def check_layout(lay: LayerLayout, n_faces: int, instance_ids: np.ndarray | None
         assert np.array_equal(np.sort(ids), np.arange(n_faces, dtype=np.uint32)), "triangle ids are not a permutation"
     # Child boxes bound what is below them (an instance's box: see instances.check_instanced).
     tri = lay.tris.reshape(-1, TRI_FLOATS)[:, TRI_VERTEX[0]:TRI_VERTEX[2] + 3].reshape(-1, 3, 3)
-    box = (lambda r, at: r[:, at:at + 3])
-    for side in (0, 1):
-        box_lo, box_hi = box(rec, NODE_BOX_LO[side]), box(rec, NODE_BOX_HI[side])
-        lk = is_leaf[:, side]
+    for c in range(k):
+        box_lo, box_hi = boxes_lo[:, c], boxes_hi[:, c]
+        lk = is_leaf[:, c]
         tri_leaves = np.nonzero(lk)[0] if instance_ids is None else np.zeros(0, np.int64)
         for i in tri_leaves[:: max(1, len(tri_leaves) // 2000)]:  # a sample keeps the check fast
-            s, c = first[payload[i, side]], count[payload[i, side]]
-            if c:
-                t = tri[s:s + c]
+            s, cnt = first[payload[i, c]], count[payload[i, c]]
+            if cnt:
+                t = tri[s:s + cnt]
                 assert np.all(t.min((0, 1)) >= box_lo[i]) and np.all(t.max((0, 1)) <= box_hi[i]), \
-                    f"node {i} child {side}: leaf triangles outside the child box"
-        nk = ~lk
-        kid = child_node[nk, side]
-        kid_box = rec[kid]
-        enclose_lo = np.minimum(box(kid_box, NODE_BOX_LO[0]), box(kid_box, NODE_BOX_LO[1]))
-        enclose_hi = np.maximum(box(kid_box, NODE_BOX_HI[0]), box(kid_box, NODE_BOX_HI[1]))
+                    f"node {i} child {c}: leaf triangles outside the child box"
+        nk = used[:, c] & ~lk
+        kid = child_node[nk, c]
+        kid_used = used[kid][:, :, None]
+        enclose_lo = np.where(kid_used, boxes_lo[kid], np.inf).min(1)
+        enclose_hi = np.where(kid_used, boxes_hi[kid], -np.inf).max(1)
         assert np.all(box_lo[nk] <= enclose_lo) and np.all(box_hi[nk] >= enclose_hi), \
-            f"a child box (side {side}) does not contain its node's children"
+            f"a child box (slot {c}) does not contain its node's children"
 
 
 _builder_kernels_loaded = False

@@ -85,6 +85,9 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     with `warp` lanes per warp (packet) on `preset`'s units and caches."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    if lay.branching != 2:
+        raise ValueError(f"the locality replay models the binary Layer BVH (branching 2), "
+                         f"not branching {lay.branching}")
     t0 = time.perf_counter()
     o = np.ascontiguousarray(o, np.float32)
     d = np.ascontiguousarray(d, np.float32)
@@ -466,7 +469,7 @@ def measure(vertices, faces, ray_sets: list[RaySet], settings: LocalitySettings,
     rows, checks, bvh_stats, done = [], [], {}, 0
     for h in settings.treelet_heights:
         most = max([len(s[1]) for s in sets] + [1])
-        bvh = build(vertices, faces, treelet_height=h, leaf_size=leaf_size, backend=backend, batch_rays=most)
+        bvh = build(vertices, faces, treelet_height=h, leaf_size=leaf_size, backend=backend, batch_rays=most, branching=2)
         bvh_stats[h] = asdict(bvh.stats)
         for rs, o, d, tmax, before in sets:
             configs = [(mode, pre, warp) for mode in settings.modes for pre, warp in widths]

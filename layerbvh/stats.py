@@ -94,6 +94,7 @@ class BVHStats:
     bytes: dict
     build_s: float
     layout_s: float
+    branching: int = 2  # children per inner node (layerbvh.layout.BRANCHINGS)
     kernel_load_s: float = 0.0  # first build in a process: compiling/loading the builder's kernels
     groups: int = 0  # instanced BVH: groups of unique geometry (`triangles` counts theirs, each once)
     instances: int = 0  # instanced BVH: instances placing them

@@ -3,9 +3,21 @@ from __future__ import annotations
 
 import drjit as dr
 
-from .geometry import FAR_SCALE, hit_children, hit_triangle, setup_ray, to_object_space
-from .layout import EXIT_BIT, INSTANCE_TAG, LEAF_BIT, LEAF_FIRST_MASK, LEAVE, PAYLOAD_MASK, POP, DeviceLayout, leaf_range
+from .geometry import FAR_SCALE, hit_children, hit_children_wide, hit_triangle, setup_ray, to_object_space
+from .layout import (EXIT_BIT, INSTANCE_TAG, LEAF_BIT, LEAF_FIRST_MASK, LEAVE, PAYLOAD_MASK, POP, DeviceLayout, leaf_range,
+                     node_format)
 from .state import MISS, RayState
+
+# Sorting networks that order a wide node's children by entry distance (compare-exchange pairs,
+# Knuth, TAOCP vol. 3, 5.3.4: 5 comparators for 4 inputs, 19 for 8, both optimal).
+SORT_NETWORKS = {
+    4: ((0, 1), (2, 3), (0, 2), (1, 3), (1, 2)),
+    8: ((0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7), (0, 1), (2, 3), (4, 5), (6, 7),
+        (2, 4), (3, 5), (1, 4), (3, 6), (1, 2), (3, 4), (5, 6)),
+}
+# Entry distances of hit children are clamped below this before sorting, so a hit always sorts
+# before a miss (whose key is inf) even if its distance overflowed to inf.
+_FLT_MAX = 3.4028234663852886e38
 
 
 @dr.syntax
@@ -18,7 +30,8 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
     One loop iteration does, in this order, whatever of these a ray needs: test one triangle of
     the leaf it is in; take the next entry from its stack (culled when farther than the
     closest hit so far); test both children of the node it is at, going on with the nearer and
-    pushing the farther; enter the leaf it reached (a leaf link carries its triangle range, so
+    pushing the farther (a wide node: all its children, on with the nearest, the other hit ones
+    pushed far to near, so the nearest of them is popped first); enter the leaf it reached (a leaf link carries its triangle range, so
     the next iteration tests the first triangle). So a node whose children both miss costs no
     extra iteration to pop, and no iteration reads a leaf record. Stack memory is touched only
     on a push or a pop.
@@ -46,6 +59,8 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
     """
     world_o, world_d = rays.load(s.slot)
     instanced = lay.instances is not None
+    wide = lay.branching > 2  # (a plain int and bool: the loop's state takes no dataclass)
+    n_slots = lay.branching - 1  # entries a wide node can push
     ray = _start_ray(m, lay, s, world_o, world_d)
     # Without instances both stay MISS (unused, but every name the loop touches must exist).
     in_inst = m.UInt32(s.inst) if instanced else m.UInt32(MISS)
@@ -143,13 +158,21 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
                     next_treelet = link & PAYLOAD_MASK
                     active &= False
 
-        # -- a node: both children; on with the nearer, push the farther --
+        # -- a node: all children; on with the nearest, push the others (far to near) --
+        # Binary: `push` says whether the farther child is pushed. Wide: `n_push` entries,
+        # push_links/push_ts[j] going to stack position nl + n_push - 1 - j (j = 0 on top).
         push = m.Bool(False)
         far_link, far_t = m.UInt32(0), m.Float(0)
+        n_push = m.UInt32(0)
+        push_links = tuple(m.UInt32(0) for _ in range(n_slots)) if wide else ()
+        push_ts = tuple(m.Float(0) for _ in range(n_slots)) if wide else ()
         at_node = active & (tri_cur >= tri_end) & (link != POP) & ((link & LEAF_BIT) == 0)
         if instanced:  # the marker is this iteration's push
             push = m.Bool(entered)
             far_link = dr.select(entered, m.UInt32(LEAVE), far_link)
+            if wide:
+                n_push = dr.select(entered, m.UInt32(1), n_push)
+                push_links = (far_link,) + push_links[1:]
             at_node &= ~entered
         if at_node:
             payload = link & PAYLOAD_MASK
@@ -157,25 +180,36 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
             node = m.UInt32(payload)
             if is_exit:  # only the first node of a step (or of the per-ray tail) enters this way
                 node = dr.gather(m.UInt32, lay.treelet_first, payload)
-            hit_l, hit_r, t_l, t_r, link_l, link_r = hit_children(m, lay.nodes, node, ray, t_best, active)
             if count_work:
                 n_inner += 1
                 if instanced:
                     n_top += dr.select(in_inst == MISS, m.UInt32(1), m.UInt32(0))
-            right_first = hit_r & (~hit_l | (t_r < t_l))
-            push = hit_l & hit_r
-            far_link = dr.select(right_first, link_l, link_r)
-            far_t = dr.select(right_first, t_l, t_r)
-            link = dr.select(hit_l | hit_r, dr.select(right_first, link_r, link_l), POP)
+            if wide:
+                link, n_push, push_links, push_ts = _wide_node(m, lay, node, ray, t_best, active)
+            else:
+                hit_l, hit_r, t_l, t_r, link_l, link_r = hit_children(m, lay.nodes, node, ray, t_best, active)
+                right_first = hit_r & (~hit_l | (t_r < t_l))
+                push = hit_l & hit_r
+                far_link = dr.select(right_first, link_l, link_r)
+                far_t = dr.select(right_first, t_l, t_r)
+                link = dr.select(hit_l | hit_r, dr.select(right_first, link_r, link_l), POP)
             if bounded:
                 if (link != POP) & ((link & LEAF_BIT) == 0) & ((link & EXIT_BIT) != 0):
                     # The nearer child is in another treelet: this step ends here.
                     next_treelet = link & PAYLOAD_MASK
                     active &= False
-        slot = dr.select(push, nl, cap)
-        loc_link[slot] = far_link
-        loc_t[slot] = far_t
-        nl = dr.select(push, nl + 1, nl)
+        slot = m.UInt32(cap)
+        if wide:
+            for j in range(n_slots):
+                slot = dr.select(m.UInt32(j) < n_push, nl + n_push - (j + 1), cap)
+                loc_link[slot] = push_links[j]
+                loc_t[slot] = push_ts[j]
+            nl += n_push
+        else:
+            slot = dr.select(push, nl, cap)
+            loc_link[slot] = far_link
+            loc_t[slot] = far_t
+            nl = dr.select(push, nl + 1, nl)
 
         # -- a leaf: its triangles from the next iteration on (an instance link waits for the
         # next iteration, which enters it) --
@@ -199,6 +233,25 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
             out.n_top, out.n_enter = n_top, n_enter
     local = [(m.UInt32(loc_link[k]), m.Float(loc_t[k])) for k in range(cap)]
     return out, done, nl, local
+
+
+def _wide_node(m, lay: DeviceLayout, node, ray, t_best, active):
+    """A wide node's step: (link to go on with, or POP if no child is hit; how many entries to
+    push; their links and entry distances, nearest first). The children are sorted by entry
+    distance (misses last) with a sorting network: branch-free, as a SIMD lane must be."""
+    fmt = node_format(lay.branching)
+    hits, ts, links = hit_children_wide(m, lay.nodes, node, ray, t_best, active, fmt)
+    keys = [dr.select(h, dr.minimum(t, _FLT_MAX), dr.inf) for h, t in zip(hits, ts)]
+    n_hit = m.UInt32(0)
+    for h in hits:
+        n_hit += dr.select(h, m.UInt32(1), m.UInt32(0))
+    for a, b in SORT_NETWORKS[fmt.branching]:
+        swap = keys[b] < keys[a]
+        keys[a], keys[b] = dr.select(swap, keys[b], keys[a]), dr.select(swap, keys[a], keys[b])
+        links[a], links[b] = dr.select(swap, links[b], links[a]), dr.select(swap, links[a], links[b])
+    link = dr.select(n_hit > 0, links[0], m.UInt32(POP))
+    n_push = dr.select(n_hit > 1, n_hit - 1, m.UInt32(0))
+    return link, n_push, tuple(links[1:]), tuple(keys[1:])
 
 
 def _start_ray(m, lay: DeviceLayout, s: RayState, world_o, world_d):

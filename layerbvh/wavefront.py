@@ -27,6 +27,12 @@ def takes_tail(n_active: int, n0: int, steps: int, tail_rays: int, tail_fraction
     return steps > 0 and n_active <= max(tail_rays, int(tail_fraction * n0))
 
 
+def stack_rows(lay: DeviceLayout) -> int:
+    """Entry-stack slots a per-ray walk can need: each node level pushes at most branching - 1
+    entries (the nearest hit child is taken, not pushed)."""
+    return max(1, (lay.branching - 1) * lay.depth)
+
+
 def _sync():
     dr.sync_thread()
     return time.perf_counter()
@@ -47,7 +53,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, mode: str, any_hit: bool, tail_
     rays = SlotRays(m, batch.o, batch.d) if mode == "per_ray" else RayRecords(m, batch.o, batch.d)
     t0 = _sync()
     if mode == "per_ray":
-        cap = max(lay.depth, 1)
+        cap = stack_rows(lay)
         out, done, _, _ = walk(m, lay, rays, s, None, cap, False, any_hit, count_work)
         res.write(out, done)
         dr.eval(*res.arrays())
@@ -61,10 +67,10 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, mode: str, any_hit: bool, tail_
     if mode not in ("layer_sorted", "layer_unsorted"):
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     sort = mode == "layer_sorted"
-    # A step pushes at most one entry per level of its treelet, plus, in an instanced layout,
-    # the LEAVE marker of the instance it enters (entering ends the step).
-    cap_local = max(1, min(lay.height, lay.depth)) + (1 if instanced else 0)
-    cap_global = max(1, lay.depth)
+    # A step pushes at most branching - 1 entries per level of its treelet, plus, in an instanced
+    # layout, the LEAVE marker of the instance it enters (entering ends the step).
+    cap_local = max(1, (lay.branching - 1) * min(lay.height, lay.depth)) + (1 if instanced else 0)
+    cap_global = stack_rows(lay)
     # Entries are only read below a ray's stack pointer, so the stacks need no zeroing.
     st_link = dr.empty(m.UInt32, n * cap_global)
     st_t = dr.empty(m.Float, n * cap_global)
@@ -133,5 +139,5 @@ def trace_inline(m, lay: DeviceLayout, o, d, tmax, active, any_hit: bool) -> Ray
     n = max(dr.width(x) for x in (*o, *d, tmax, active))
     s = RayState.start(m, dr.zeros(m.Float, n) + m.Float(tmax), count_work=False,  # one tmax per lane
                        instanced=lay.instances is not None)
-    out, _, _, _ = walk(m, lay, DirectRays(o, d), s, None, max(lay.depth, 1), False, any_hit, False, active=active)
+    out, _, _, _ = walk(m, lay, DirectRays(o, d), s, None, stack_rows(lay), False, any_hit, False, active=active)
     return out

@@ -314,7 +314,8 @@ class SceneTracer:
 
     def __init__(self, scene, traversal: str = "auto", treelet_height: int = layerbvh.DEFAULT_TREELET_HEIGHT,
                  leaf_size: int = layerbvh.DEFAULT_LEAF_SIZE,
-                 count_work: bool = True, batch_rays: int = layerbvh.BATCH_RAYS):
+                 count_work: bool = True, batch_rays: int = layerbvh.BATCH_RAYS,
+                 branching: int = layerbvh.DEFAULT_BRANCHING):
         t0 = time.perf_counter()
         self.scene = scene
         self.geometry = collect_geometry(scene)
@@ -322,7 +323,8 @@ class SceneTracer:
         self.count_work = count_work
         g = self.geometry
         backend = "cuda" if mi.variant().startswith("cuda") else "llvm"
-        params = dict(treelet_height=treelet_height, leaf_size=leaf_size, backend=backend, batch_rays=batch_rays)
+        params = dict(treelet_height=treelet_height, leaf_size=leaf_size, backend=backend, batch_rays=batch_rays,
+                      branching=branching)
         if g.instanced:
             # Each shapegroup's triangles once; the scene's own meshes are one more placement.
             self.bvh = layerbvh.build_instanced(g.engine_groups(), g.engine_instances(), **params)
@@ -361,7 +363,7 @@ class SceneTracer:
         }
         h.update(json.dumps(content).encode())
         st = self.bvh.stats
-        h.update(json.dumps({"treelet_height": st.treelet_height, "leaf_size": st.leaf_size,
+        h.update(json.dumps({"treelet_height": st.treelet_height, "leaf_size": st.leaf_size, "branching": st.branching,
                              "batch_rays": self.bvh.batch_rays, "backend": self.bvh.backend,
                              "cpu": layerbvh.backend.cpu_model(),
                              "threads": dr.thread_count(), "layerbvh": layerbvh.__version__}).encode())

@@ -34,8 +34,11 @@ def _parser() -> argparse.ArgumentParser:
         sp.add_argument("--traversal", default="auto",
                         help="auto | per_ray | layer_sorted | layer_unsorted | embree (our loop, Mitsuba's queries: "
                              "the control) (default auto)")
-        sp.add_argument("--treelet-height", type=int, default=layerbvh.DEFAULT_TREELET_HEIGHT)
+        sp.add_argument("--treelet-height", type=int, default=layerbvh.DEFAULT_TREELET_HEIGHT,
+                        help="levels of the BVH per treelet (default %(default)s)")
         sp.add_argument("--leaf-size", type=int, default=layerbvh.DEFAULT_LEAF_SIZE)
+        sp.add_argument("--branching", type=int, default=layerbvh.DEFAULT_BRANCHING,
+                        help="children per BVH node: 2 (the paper's binary BVH), 4 or 8 (default %(default)s)")
         sp.add_argument("--variant", default="llvm_ad_rgb",
                         help="Mitsuba variant: any llvm_* or cuda_* (default %(default)s)")
         sp.add_argument("--as-path", action="store_true", help=AS_PATH_HELP)
@@ -63,6 +66,8 @@ def _parser() -> argparse.ArgumentParser:
     v.add_argument("--max-spp", type=int, help="stop doubling here even within budget (default ref spp / 16)")
     v.add_argument("--res", type=int, nargs=2, metavar=("W", "H"), help="film resolution (default: the scene's)")
     v.add_argument("--leaf-size", type=int, default=layerbvh.DEFAULT_LEAF_SIZE)
+    v.add_argument("--branching", type=int, default=layerbvh.DEFAULT_BRANCHING,
+                   help="children per BVH node of the layerbvh configurations: 2, 4 or 8 (default %(default)s)")
     v.add_argument("--cache", help="reference cache folder (default $XDG_CACHE_HOME/layerbvh/references)")
     v.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant: any llvm_* or cuda_* (default %(default)s)")
     v.add_argument("--as-path", action="store_true", help=AS_PATH_HELP)
@@ -103,13 +108,17 @@ def _check_args(args):
             raise UserError(str(e)) from None
         return
     if args.command == "converge":
+        try:
+            layerbvh.check_param("branching", args.branching)
+        except ValueError as e:
+            raise UserError(f"--{e}") from None
         return
     if args.spp is not None and args.spp < 1:
         raise UserError(f"--spp must be >= 1, got {args.spp}")
     from .integrator import check_settings
     try:
         check_settings(max_depth=-1, rr_depth=5, traversal=args.traversal, treelet_height=args.treelet_height,
-                       leaf_size=args.leaf_size, batch_rays=1)
+                       leaf_size=args.leaf_size, batch_rays=1, branching=args.branching)
     except ValueError as e:  # the integrator's own rule, named as the option: "--treelet-height must ..."
         name, _, rule = str(e).partition(" ")
         raise UserError(f"--{name.replace('_', '-')} {rule}") from None
@@ -129,7 +138,7 @@ def _check_memory(scene, spp: int, integ) -> None:
 def _ours_props(args, props, stats=False, traversal=None) -> dict:
     """The layerbvh integrator's properties for these options and path settings."""
     return {"traversal": traversal or args.traversal, "treelet_height": args.treelet_height,
-            "leaf_size": args.leaf_size, "stats": stats, **props}
+            "leaf_size": args.leaf_size, "branching": args.branching, "stats": stats, **props}
 
 
 def _ours(mi, args, props, stats=False, traversal=None):
@@ -205,7 +214,7 @@ def cmd_compare(mi, args) -> int:
         "ours": {**side(ou), "calibration_s": ou.calibration_s, "build_s": run.get("build_s", 0.0),
                  "kernel_load_s": bvh.get("kernel_load_s", 0.0), "loop": run.get("loop"),
                  "trace_s": run.get("trace_s"), "shading_s": run.get("shading_s"), "traversal": args.traversal,
-                 "treelet_height": args.treelet_height},
+                 "treelet_height": args.treelet_height, "branching": args.branching},
         "auto_choices": run.get("auto_choices", {}),
         "traversal": traversal,
         "statistics_pass": {"spp": stats_spp, "render_s": cs.seconds, "compile_s": cs.compile_s},

@@ -178,17 +178,18 @@ def _seed(config_index: int, level: int) -> int:
     return 1 + 1000 * config_index + (level + 1)
 
 
-def _integrator(mi, cfg: Config, props: dict, leaf_size: int):
+def _integrator(mi, cfg: Config, props: dict, build: dict):
+    """The configuration's integrator; `build` holds the BVH's leaf_size and branching."""
     if cfg.stock:
         return load_integrator(mi, {"type": "path", **props})
     return load_integrator(mi, {"type": "layerbvh", "traversal": cfg.traversal, "treelet_height": cfg.treelet_height,
-                         "leaf_size": leaf_size, **props})
+                         **build, **props})
 
 
 def run_config(mi, scene, cfg: Config, index: int, props: dict, ref: np.ndarray, budget: float,
-               max_spp: int, leaf_size: int, bar) -> None:
+               max_spp: int, build: dict, bar) -> None:
     """Render at doubling spp while the next render (predicted: twice the last) fits in the budget."""
-    integ = _integrator(mi, cfg, props, leaf_size)
+    integ = _integrator(mi, cfg, props, build)
     tracer = None if cfg.stock else integ.tracer(scene)  # built once here, outside every timed render
     cfg.build_s = tracer.build_s if tracer is not None else 0.0
     # Warm-up with its own seed: most kernels compile here; any later compile is subtracted too.
@@ -468,7 +469,8 @@ def run(mi, args) -> dict:
     renders = len(configs) * (int(math.log2(max_spp)) + 1)
     with tqdm(total=renders, desc="converge", unit="render", disable=not progress, file=sys.stderr) as bar:
         for i, cfg in enumerate(configs):
-            run_config(mi, scene, cfg, i, props, ref, args.budget, max_spp, args.leaf_size, bar)
+            run_config(mi, scene, cfg, i, props, ref, args.budget, max_spp,
+                       {"leaf_size": args.leaf_size, "branching": args.branching}, bar)
             cfg.fit = fits(cfg)
             bar.total = bar.n + (len(configs) - i - 1) * (int(math.log2(max_spp)) + 1)
     table = equal_time_error_table(configs)

@@ -31,7 +31,7 @@ def mis_weight(pdf_a, pdf_b):
 
 
 def check_settings(max_depth: int, rr_depth: int, traversal: str, treelet_height: int, leaf_size: int,
-                   batch_rays: int) -> None:
+                   batch_rays: int, branching: int = layerbvh.DEFAULT_BRANCHING) -> None:
     """The integrator's rules for its properties (the CLI and converge check the same way):
     a ValueError naming the property and what it must be."""
     if max_depth < -1:
@@ -43,6 +43,7 @@ def check_settings(max_depth: int, rr_depth: int, traversal: str, treelet_height
     layerbvh.check_param("treelet_height", treelet_height)
     layerbvh.check_param("leaf_size", leaf_size)
     layerbvh.check_param("batch_rays", batch_rays)
+    layerbvh.check_param("branching", branching)
 
 
 def loop(state: tuple, cond, body, symbolic: bool, label: str) -> tuple:
@@ -122,7 +123,8 @@ class LayerBVHPathTracer:
     as in ``path``; ``traversal`` (``auto`` | ``per_ray`` | ``layer_sorted`` | ``layer_unsorted``
     | ``embree``, default ``auto``: per ray batch, the faster of per_ray and layer_sorted, timed
     once per kind of batch; ``embree``: this loop with Mitsuba's own queries, the control that
-    isolates the traversal), ``treelet_height`` (8), ``leaf_size`` (4), ``stats`` (false:
+    isolates the traversal), ``branching`` (children per BVH node: 2, 4 or 8; default
+    layerbvh.DEFAULT_BRANCHING), ``treelet_height`` (8, levels of that tree), ``leaf_size`` (4), ``stats`` (false:
     collect traversal work counts), ``adaptive`` (true: leave out what the scene does not need),
     ``batch_rays`` (2^20: rays traced per batch; bounds the traversal's work memory).
 
@@ -141,12 +143,13 @@ class LayerBVHPathTracer:
         self.traversal = props.get("traversal", "auto")
         self.treelet_height = props.get("treelet_height", layerbvh.DEFAULT_TREELET_HEIGHT)
         self.leaf_size = props.get("leaf_size", layerbvh.DEFAULT_LEAF_SIZE)
+        self.branching = props.get("branching", layerbvh.DEFAULT_BRANCHING)
         self.stats = props.get("stats", False)
         self.adaptive = props.get("adaptive", True)
         self.batch_rays = props.get("batch_rays", layerbvh.BATCH_RAYS)
         try:
             check_settings(self.max_depth, self.rr_depth, self.traversal, self.treelet_height, self.leaf_size,
-                           self.batch_rays)
+                           self.batch_rays, self.branching)
         except ValueError as e:
             raise ValueError(f"layerbvh integrator: {e}") from None
         self._state: SceneState | None = None
@@ -162,7 +165,7 @@ class LayerBVHPathTracer:
                 analytic = sum(not s.is_mesh() for s in scene.shapes())
             else:
                 tracer = SceneTracer(scene, self.traversal, self.treelet_height, self.leaf_size,
-                                     count_work=self.stats, batch_rays=self.batch_rays)
+                                     count_work=self.stats, batch_rays=self.batch_rays, branching=self.branching)
                 treelets, analytic = tracer.bvh.stats.treelets, len(tracer.geometry.analytic)
             features = plan_features(scene, analytic, treelets, self.traversal, self.stats, self.adaptive)
             self._state = SceneState(scene, tracer, features)
@@ -305,7 +308,7 @@ class LayerBVHPathTracer:
             "build_s": tracer.build_s if tracer is not None else 0.0, "trace_s": trace_s,
             "shading_s": None if megakernel else max(total - trace_s, 0.0), "queries": len(steps),
             "loop": "megakernel" if megakernel else "wavefront",
-            "traversal": self.traversal, "treelet_height": self.treelet_height,
+            "traversal": self.traversal, "treelet_height": self.treelet_height, "branching": self.branching,
             "bvh": {} if tracer is None else {k: v for k, v in vars(tracer.bvh.stats).items()
                                               if k != "treelet_node_counts"},
             "rays": sum(s.rays for s in steps),
@@ -446,7 +449,7 @@ class LayerBVHPathTracer:
 
     def to_string(self):
         return (f"LayerBVHIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
-                f"traversal={self.traversal}, treelet_height={self.treelet_height}]")
+                f"traversal={self.traversal}, branching={self.branching}, treelet_height={self.treelet_height}]")
 
 
 # -- registration, once per variant ------------------------------------------------------------------

@@ -77,9 +77,11 @@ class Job:
 
 JOBS = {
     "compare": Job("compare", False,
-                   lambda s: s["traversal"] if s["traversal"] == EMBREE else f"{s['traversal']} h={s['treelet_height']}"),
+                   lambda s: s["traversal"] if s["traversal"] == EMBREE else
+                   f"{s['traversal']} K={s.get('branching', 2)} h={s['treelet_height']}"),
     "converge": Job("converge", True, lambda s: s["config"]),
-    "bench": Job("bench", True, lambda s: f"{s['rays']} rays h={','.join(map(str, s['heights']))}"),
+    "bench": Job("bench", True, lambda s: f"{s['rays']} rays K={','.join(map(str, s.get('branchings', [2])))} "
+                                          f"h={','.join(map(str, s['heights']))}"),
     "third_party": Job("third_party", False, lambda s: s["traversal"]),
     "locality": Job("locality", False, lambda s: f"{s['rays']} rays h={s['treelet_height']}"),
 }
@@ -572,6 +574,8 @@ def add_parser(sub) -> None:
                                        "(default auto)")
     s.add_argument("--treelet-heights", help=f"compare, bench: comma list (default "
                                              f"{layerbvh.DEFAULT_TREELET_HEIGHT}; bench 4,8,12)")
+    s.add_argument("--branchings", help=f"compare, bench: children per BVH node, comma list of 2, 4, 8 (default "
+                                        f"{layerbvh.DEFAULT_BRANCHING})")
     s.add_argument("--configs", help="converge: comma list, one point each: stock, embree, auto, per_ray, "
                                      "layer_sorted:H, layer_unsorted:H (default stock,per_ray,layer_sorted)")
     s.add_argument("--budget", type=float, help="converge: seconds of rendering per configuration (required)")
@@ -599,9 +603,9 @@ def add_parser(sub) -> None:
 
 
 JOB_OPTIONS = {  # which options each job takes (an option given to another job is an error)
-    "compare": {"spp", "res", "seed", "traversal", "treelet_heights"},
+    "compare": {"spp", "res", "seed", "traversal", "treelet_heights", "branchings"},
     "converge": {"res", "configs", "budget", "ref_spp", "max_spp"},
-    "bench": {"spp", "res", "seed", "treelet_heights", "rays", "ray_count", "runs"},
+    "bench": {"spp", "res", "seed", "treelet_heights", "branchings", "rays", "ray_count", "runs"},
     "locality": {"spp", "res", "seed", "treelet_heights", "rays", "ray_count", "preset", "warp", "sample", "segment"},
 }
 ALL_JOB_OPTIONS = set().union(*JOB_OPTIONS.values())
@@ -638,6 +642,12 @@ def grid(args) -> list[dict]:
         raise UserError(f"--res must be positive, got {args.res[0]} {args.res[1]}")
     res = list(args.res) if args.res else None
     seed = 0 if args.seed is None else args.seed
+    branchings = _int_list(args.branchings, "--branchings") if args.branchings else [layerbvh.DEFAULT_BRANCHING]
+    for k in branchings:
+        try:
+            layerbvh.check_param("branching", k)
+        except ValueError as e:
+            raise UserError(f"--branchings: {e}") from None
     if args.job == "compare":
         from .integrator import check_settings
         spps = _int_list(args.spp, "--spp") if args.spp else [None]
@@ -656,8 +666,10 @@ def grid(args) -> list[dict]:
                     opt = "--treelet-heights" if name == "treelet_height" else f"--{name.replace('_', '-')}"
                     raise UserError(f"{opt} {rule}") from None
         return [{"traversal": t, "treelet_height": layerbvh.DEFAULT_TREELET_HEIGHT if t == EMBREE else h,
+                 "branching": layerbvh.DEFAULT_BRANCHING if t == EMBREE else k,
                  "spp": spp, "res": res, "seed": seed, "variant": args.variant}
-                for spp in spps for t in traversals for h in ([None] if t == EMBREE else heights)]
+                for spp in spps for t in traversals for k in ([None] if t == EMBREE else branchings)
+                for h in ([None] if t == EMBREE else heights)]
     if args.job == "converge":
         from .converge import ConvergeError, parse_configs
         if args.budget is None:
@@ -690,7 +702,8 @@ def grid(args) -> list[dict]:
         if val is not None and val < 1:
             raise UserError(f"{opt} must be >= 1, got {val}")
     # res and spp make the recording; generated ray sets do not depend on them (nor does their key)
-    return [{"rays": k, "heights": heights, "ray_count": args.ray_count or 1_000_000, "runs": args.runs or 5,
+    return [{"rays": k, "heights": heights, "branchings": branchings, "ray_count": args.ray_count or 1_000_000,
+             "runs": args.runs or 5,
              "res": None if k in GENERATED_RAYS else res or [512, 512], "spp": None if k in GENERATED_RAYS else spp[0],
              "seed": seed, "variant": args.variant} for k in kinds]
 

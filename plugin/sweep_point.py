@@ -75,7 +75,8 @@ def run_compare(point: dict, out: Path) -> dict:
     """`layerbvh compare` on the point's scene and configuration; its metrics, times and verdict."""
     s = point["settings"]
     _cli(["compare", point["scene"], "--seed", str(s["seed"]), "--traversal", s["traversal"],
-          "--treelet-height", str(s["treelet_height"]), "--variant", s["variant"], "--out", str(out / "compare"),
+          "--treelet-height", str(s["treelet_height"]), "--branching", str(s.get("branching", 2)),
+          "--variant", s["variant"], "--out", str(out / "compare"),
           "--no-progress", *(["--spp", str(s["spp"])] if s.get("spp") else []), *_res_args(s)])
     rep = json.loads((out / "compare" / "report.json").read_text())
     m, ours, split = rep["metrics"], rep["ours"], rep.get("split") or {}
@@ -159,7 +160,8 @@ def run_bench(point: dict, out: Path) -> dict:
     else:
         v, f, o, d, tmax, source = _recorded_rays(mi, point, kind)
         ray_set = (kind, o[:n], d[:n], tmax[:n], kind == "shadow")
-    args = SimpleNamespace(heights=s["heights"], runs=s["runs"], backend="llvm", batch_rays=layerbvh.BATCH_RAYS)
+    args = SimpleNamespace(heights=s["heights"], branchings=s.get("branchings", [2]), runs=s["runs"], backend="llvm",
+                           batch_rays=layerbvh.BATCH_RAYS)
     rows = traversal.bench_mesh(short_name(point["name"]), v, f, [ray_set], args, source=source)
     doc = {"machine": traversal.machine_info("llvm"), "versions": traversal.versions(),
            "command": f"layerbvh sweep --job bench: {point['name']}, {kind} rays", "runs": s["runs"], "results": rows}

@@ -255,3 +255,20 @@ def test_per_level_work_is_the_flat_walk_plus_the_top_level(bunny):
         assert st.inner_nodes - st.top_inner_nodes == a.stats.inner_nodes - (n - st.instance_entries), mode
         assert st.as_dict()["instance_entries_per_ray"] == st.instance_entries / n
     assert flat.trace(o, d, mode="per_ray").stats.instance_entries == 0
+
+
+@pytest.mark.parametrize("branching", [4, 8])
+def test_instanced_wide_trees_return_the_binary_hits(forest, branching):
+    """Two-level BVHs with 4- and 8-wide nodes (top level and groups): every mode returns binary
+    per_ray's instance, prim and t bits, closest and any hit."""
+    o, d = forest["rays"]["incoherent"]
+    ref = layerbvh.build_instanced(forest["groups"], forest["instances"], treelet_height=4).trace(o, d, mode="per_ray")
+    bvh = layerbvh.build_instanced(forest["groups"], forest["instances"], treelet_height=2, branching=branching,
+                                   tail_rays=0, tail_fraction=0.0)
+    bvh.check()
+    for mode in layerbvh.MODES:
+        h = bvh.trace(o, d, mode=mode)
+        bad = (h.prim != ref.prim) | (h.instance != ref.instance) | (h.t.view(np.uint32) != ref.t.view(np.uint32))
+        assert not bad.any(), f"branching {branching} {mode} differs from binary per_ray on {bad.sum()} rays"
+        occ = bvh.occluded(o, d, np.full(len(o), np.inf, np.float32), mode=mode).occluded
+        assert np.array_equal(occ, ref.prim != MISS)

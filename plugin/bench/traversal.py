@@ -41,6 +41,7 @@ class Config:
     mode: str
     height: int | None
     run: Callable
+    branching: int | None = None  # children per node of the layerbvh layout (None: Embree)
     build_s: float | None = None
     bvh_bytes: int | None = None
     times: list = field(default_factory=list)
@@ -52,7 +53,12 @@ class Config:
 
     @property
     def label(self) -> str:
-        return self.mode if self.height is None else f"{self.mode} h={self.height}"
+        return self.mode if self.height is None else layout_label(self.mode, self.branching, self.height)
+
+
+def layout_label(mode: str, branching: int, height: int) -> str:
+    """How a configuration is named in tables: its mode, its layout's branching and treelet height."""
+    return f"{mode} K={branching} h={height}"
 
 
 # -- setup ------------------------------------------------------------------------------------------
@@ -66,6 +72,9 @@ def parse_args(argv=None):
     p.add_argument("--procedural-tris", type=int, default=600_000,
                    help="triangles of the procedural sphere soup (default 600,000; 0 skips it)")
     p.add_argument("--heights", default="3,4,6,8", help="treelet heights, comma list (default 3,4,6,8)")
+    p.add_argument("--branchings", default=str(layerbvh.DEFAULT_BRANCHING),
+                   help=f"children per BVH node, comma list of {', '.join(map(str, layerbvh.BRANCHINGS))} "
+                        f"(default {layerbvh.DEFAULT_BRANCHING})")
     p.add_argument("--runs", type=int, default=5, help="timed runs per configuration after one warm-up (default 5)")
     p.add_argument("--seed", type=int, default=0, help="seed of the procedural mesh and the rays")
     p.add_argument("--backend", choices=("llvm", "cuda"), default="llvm",
@@ -94,6 +103,12 @@ def parse_args(argv=None):
         p.error(f"--heights must be a comma list of integers, got {args.heights!r}")
     if not args.heights:
         p.error("--heights is empty")
+    try:
+        args.branchings = [layerbvh.check_param("branching", int(k)) for k in args.branchings.split(",") if k.strip()]
+    except ValueError as e:
+        p.error(f"--branchings: {e}")
+    if not args.branchings:
+        p.error("--branchings is empty")
     if args.rays < 1 or args.runs < 1 or args.procedural_tris < 0 or args.batch_rays < 1:
         p.error("--rays, --runs and --batch-rays must be >= 1, --procedural-tris >= 0")
     args.mesh = [m.strip() for arg in args.mesh for m in arg.split(",") if m.strip()] if args.mesh else None
@@ -175,7 +190,7 @@ def layer_config(bvh, mode: str, height: int, o_dev, d_dev, tmax_dev, any_hit: b
             return secs, lambda: h.numpy().astype(np.uint32), stats
         return secs, h.prim.numpy, stats
     s = bvh.stats
-    return Config(mode, height, run, build_s=s.build_s + s.layout_s, bvh_bytes=s.total_bytes)
+    return Config(mode, height, run, branching=s.branching, build_s=s.build_s + s.layout_s, bvh_bytes=s.total_bytes)
 
 
 def make_configs(scene, embree_build_s, bvhs: dict, o, d, tmax, any_hit: bool, backend: str,
@@ -191,10 +206,10 @@ def make_configs(scene, embree_build_s, bvhs: dict, o, d, tmax, any_hit: bool, b
     # per_ray on every layout too: the treelet layout orders its nodes, so it is part of the baseline.
     # auto on the default height (its warm-up run is where it times per_ray against layer_sorted),
     # placed between the two modes it picks from so that every round runs the three back to back
-    h_auto = AUTO_HEIGHT if AUTO_HEIGHT in bvhs else first
-    for h, bvh in bvhs.items():
+    auto_key = (layerbvh.DEFAULT_BRANCHING, AUTO_HEIGHT) if (layerbvh.DEFAULT_BRANCHING, AUTO_HEIGHT) in bvhs else first
+    for (k, h), bvh in bvhs.items():
         configs.append(layer_config(bvh, "per_ray", h, o_dev, d_dev, tmax_dev, any_hit))
-        if h == h_auto:
+        if (k, h) == auto_key:
             configs.append(layer_config(bvh, "auto", h, o_dev, d_dev, tmax_dev, any_hit, hint=kind))
         configs += [layer_config(bvh, mode, h, o_dev, d_dev, tmax_dev, any_hit) for mode in LAYER_MODES]
     return configs
@@ -284,17 +299,23 @@ def result_rows(mesh: str, tris: int, kind: str, configs: list[Config], n: int, 
         # round's neighbours share the machine's state of the moment
         best_of = None
         if c.mode == "auto":
-            faster = max((f"per_ray h={c.height}", f"layer_sorted h={c.height}"), key=lambda k: med[k])
+            faster = max((layout_label("per_ray", c.branching, c.height), layout_label("layer_sorted", c.branching, c.height)),
+                         key=lambda k: med[k])
             best_of = float(np.median([a / b for a, b in zip(mrays[c.label], mrays[faster])]))
         rows.append({
             "mesh": mesh, "triangles": tris, "rays": kind, "mode": c.mode, "treelet_height": c.height,
+            "branching": c.branching,
             "mrays_s": med[c.label], "runs": mrays[c.label], "build_s": c.build_s,
             "bvh_bytes": c.bvh_bytes, "work_bytes": s.work_bytes if s else None,
             "ratio_per_ray": med[c.label] / per_ray, "ratio_embree": med[c.label] / med["embree"],
-            "ratio_per_ray_same_h": med[c.label] / med[f"per_ray h={c.height}"] if c.height else None,
+            "ratio_per_ray_same_h": med[c.label] / med[layout_label("per_ray", c.branching, c.height)] if c.height else None,
             "inner_per_ray": s.inner_nodes_per_ray if s else None,
             "leaves_per_ray": s.leaves_per_ray if s else None,
             "tris_per_ray": s.triangles_per_ray if s else None,
+            "iterations_per_ray": s.per_ray("iterations") if s else None,
+            # each inner-node visit slab-tests all of the node's child slots: box tests go up with
+            # the branching while iterations and dependent node loads (= inner visits) go down
+            "box_tests_per_ray": s.inner_nodes_per_ray * c.branching if s else None,
             "steps": s.steps if s else None,
             "ray_count": n, "query": "any_hit" if any_hit else "closest_hit", "source": source,
             "hit_fraction": float(np.mean(c.prim != (0 if any_hit else layerbvh.MISS))),
@@ -334,14 +355,15 @@ def print_table(rows: list[dict]) -> None:
     query = "any-hit" if r0["query"] == "any_hit" else "closest-hit"
     print(f"\n## {r0['mesh']} ({r0['triangles']:,} triangles), {r0['rays']} rays, {query} "
           f"({r0['ray_count']:,}, {100 * r0['hit_fraction']:.1f}% hit per per_ray)\n")
-    print("| mode | h | Mrays/s | runs min–max | × per_ray | × Embree | inner/ray | leaves/ray | tris/ray "
-          "| steps | build s | build Mtris/s | BVH MiB | work MiB | peak RSS +MiB |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("| mode | K | h | Mrays/s | runs min–max | × per_ray | × Embree | inner/ray | box tests/ray | iters/ray "
+          "| leaves/ray | tris/ray | steps | build s | build Mtris/s | BVH MiB | work MiB | peak RSS +MiB |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         build_rate = r["triangles"] / r["build_s"] / 1e6 if r["build_s"] else None
-        print(f"| {mode_label(r)} | {_fmt(r['treelet_height'], 'd')} | {r['mrays_s']:.2f} "
+        print(f"| {mode_label(r)} | {_fmt(r['branching'], 'd')} | {_fmt(r['treelet_height'], 'd')} | {r['mrays_s']:.2f} "
               f"| {min(r['runs']):.2f}–{max(r['runs']):.2f} | {r['ratio_per_ray']:.2f} | {r['ratio_embree']:.2f} "
-              f"| {_fmt(r['inner_per_ray'], '.1f')} | {_fmt(r['leaves_per_ray'], '.2f')} "
+              f"| {_fmt(r['inner_per_ray'], '.1f')} | {_fmt(r['box_tests_per_ray'], '.1f')} "
+              f"| {_fmt(r['iterations_per_ray'], '.1f')} | {_fmt(r['leaves_per_ray'], '.2f')} "
               f"| {_fmt(r['tris_per_ray'], '.1f')} | {_fmt(r['steps'], 'd')} | {_fmt(r['build_s'], '.2f')} "
               f"| {_fmt(build_rate, '.2f')} | {_fmt(r['bvh_bytes'] and r['bvh_bytes'] / MIB, '.1f')} "
               f"| {_fmt(r['work_bytes'] and r['work_bytes'] / MIB, '.1f')} "
@@ -384,8 +406,10 @@ def recorded_ray_sets(rays: dict, args):
 
 def bench_mesh(name: str, v, f, ray_sets, args, source: str = "generated") -> list[dict]:
     scene, embree_build_s = embree_scene(v, f)
-    bvhs = {h: layerbvh.build(v, f, treelet_height=h, backend=args.backend,
-                              batch_rays=getattr(args, "batch_rays", layerbvh.BATCH_RAYS)) for h in args.heights}
+    branchings = getattr(args, "branchings", [layerbvh.DEFAULT_BRANCHING])
+    bvhs = {(k, h): layerbvh.build(v, f, treelet_height=h, backend=args.backend, branching=k,
+                                   batch_rays=getattr(args, "batch_rays", layerbvh.BATCH_RAYS))
+            for k in branchings for h in args.heights}
     rows = []
     width = layerbvh.backend.llvm_vector_width() if args.backend == "llvm" else None
     for kind, o, d, tmax, any_hit in ray_sets:

@@ -1,0 +1,205 @@
+"""Cost of one walk-kernel iteration per branching: LLVM IR instructions by branch, packet iterations, SIMD use and ns per packet-iteration."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import shlex
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import drjit as dr
+import numpy as np
+
+import layerbvh
+from .. import atomic
+from ..repo import SCENES
+from . import meshes
+
+# Lines of Dr.Jit's LLVM IR that are not work: labels, branches, and the broadcast of a
+# constant (insertelement into undef + shufflevector), which LLVM folds into the operand.
+_NOT_WORK = re.compile(r"^\s*(br |ret |[A-Za-z_0-9]+:|;|}|$)|insertelement <\d+ x [a-z0-9]+> undef|"
+                       r"shufflevector <\d+ x [a-z0-9]+> %\S+, <\d+ x [a-z0-9]+> undef, <\d+ x i32> zeroinitializer")
+_LABEL = re.compile(r"^(l_(\d+)_(start|end|body|done|cond|before)):")
+
+
+@dataclass
+class IRCount:
+    """Instructions of the walk kernel's loop: all of it, and the parts inside its top-level
+    branches (a packet runs a branch only when one of its lanes takes it)."""
+
+    loop: int
+    triangle_branch: int
+    node_branch: int
+    leaf_branch: int
+
+    @property
+    def always(self) -> int:
+        """Instructions every packet-iteration runs (outside the three branches)."""
+        return self.loop - self.triangle_branch - self.node_branch - self.leaf_branch
+
+
+def count_ir(ir: str) -> IRCount:
+    """IRCount of the walk kernel: the kernel whose loop body is the largest in `ir`."""
+    kernels = [k for k in ir.split("\ndefine ") if "_body:" in k]
+    if not kernels:
+        raise ValueError("no kernel with a loop in the IR")
+    best = None
+    for k in kernels:
+        lines = k.splitlines()
+        spans, open_at = {}, {}
+        for i, line in enumerate(lines):
+            m = _LABEL.match(line)
+            if not m:
+                continue
+            label_id, kind = m.group(2), m.group(3)
+            if kind in ("start", "before"):
+                open_at.setdefault(label_id, i)
+            elif kind == "end" and label_id in open_at:
+                spans[label_id] = (open_at[label_id], i)
+        work = np.array([0 if _NOT_WORK.search(line) else 1 for line in lines])
+        loops = [lid for lid, (a, b) in spans.items() if any(lines[j].startswith(f"l_{lid}_body:") for j in range(a, b))]
+        if not loops:
+            continue
+        lid = max(loops, key=lambda x: spans[x][1] - spans[x][0])
+        a, b = spans[lid]
+        inner = sorted((s for x, s in spans.items() if x != lid and a < s[0] and s[1] < b), key=lambda s: s[0])
+        top, last_end = [], -1
+        for s in inner:  # top-level branches of the loop body, in program order
+            if s[0] > last_end:
+                top.append(s)
+                last_end = s[1]
+        size = [int(work[s[0]:s[1]].sum()) for s in top]
+        total = int(work[a:b].sum())
+        if best is None or total > best.loop:
+            # First branch: a triangle; last: entering a leaf; the largest of the rest: the node.
+            node = max(size[1:-1]) if len(size) > 2 else 0
+            best = IRCount(loop=total, triangle_branch=size[0] if size else 0, node_branch=node,
+                           leaf_branch=size[-1] if len(size) > 1 else 0)
+    return best
+
+
+def capture_ir(fn) -> str:
+    """Run `fn` with Dr.Jit printing the IR of every kernel it compiles (to file descriptor 1),
+    and return that text."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    with tempfile.TemporaryFile("w+") as tmp:
+        os.dup2(tmp.fileno(), 1)
+        dr.set_flag(dr.JitFlag.PrintIR, True)
+        try:
+            fn()
+        finally:
+            dr.set_flag(dr.JitFlag.PrintIR, False)
+            sys.stdout.flush()
+            os.dup2(saved, 1)
+            os.close(saved)
+        tmp.seek(0)
+        return tmp.read()
+
+
+@dataclass
+class KernelCost:
+    branching: int
+    rays: str
+    mrays_s: float
+    ir: dict
+    iterations_per_ray: float
+    packet_iterations_per_ray: float
+    simd_use: float            # lane-iterations / (lanes x packet-iterations)
+    ns_per_packet_iteration: float  # per core: wall time x threads / packet-iterations
+    inner_per_ray: float
+    box_tests_per_ray: float
+    tris_per_ray: float
+
+
+def packet_iterations(iters: np.ndarray, lanes: int) -> int:
+    """Iterations of the packets that per_ray runs: W consecutive rays per packet, each packet
+    looping until its slowest lane is done."""
+    pad = -len(iters) % lanes
+    return int(np.concatenate([iters, np.zeros(pad, iters.dtype)]).reshape(-1, lanes).max(1).sum())
+
+
+def measure(v, f, o, d, branching: int, kind: str, runs: int, height: int) -> KernelCost:
+    bvh = layerbvh.build(v, f, branching=branching, treelet_height=height)
+    m = bvh.m
+    o_dev = m.Array3f(*(m.Float(np.ascontiguousarray(o[:, c])) for c in range(3)))
+    d_dev = m.Array3f(*(m.Float(np.ascontiguousarray(d[:, c])) for c in range(3)))
+    dr.eval(o_dev, d_dev)
+    ir = capture_ir(lambda: dr.eval(bvh.trace(o_dev, d_dev, mode="per_ray", stats=False).t))
+    counted = bvh.trace(o_dev, d_dev, mode="per_ray", stats=True)
+    iters = np.asarray(counted.work["iterations"].numpy(), np.int64)
+    lanes = layerbvh.backend.llvm_vector_width() if bvh.backend == "llvm" else 32
+    times = []
+    for _ in range(runs):
+        dr.sync_thread()
+        t0 = time.perf_counter()
+        h = bvh.trace(o_dev, d_dev, mode="per_ray", stats=False)
+        dr.eval(h.t, h.prim)
+        dr.sync_thread()
+        times.append(time.perf_counter() - t0)
+    secs = float(np.median(times))
+    p_iter = packet_iterations(iters, lanes)
+    st = counted.stats
+    n = len(o)
+    return KernelCost(branching=branching, rays=kind, mrays_s=n / secs / 1e6, ir=asdict(count_ir(ir)) | {"always": count_ir(ir).always},
+                      iterations_per_ray=float(iters.mean()), packet_iterations_per_ray=p_iter / n,
+                      simd_use=float(iters.sum()) / (lanes * p_iter),
+                      ns_per_packet_iteration=secs * dr.thread_count() / p_iter * 1e9,
+                      inner_per_ray=st.inner_nodes_per_ray, box_tests_per_ray=st.inner_nodes_per_ray * branching,
+                      tris_per_ray=st.triangles_per_ray)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--mesh", default=None, help="a .ply/.obj mesh (default: a procedural mesh of --procedural-tris)")
+    p.add_argument("--procedural-tris", type=int, default=600_000)
+    p.add_argument("--rays", type=int, default=1_000_000)
+    p.add_argument("--branchings", default=",".join(map(str, layerbvh.BRANCHINGS)))
+    p.add_argument("--height", type=int, default=layerbvh.DEFAULT_TREELET_HEIGHT)
+    p.add_argument("--runs", type=int, default=5)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", metavar="OUT")
+    args = p.parse_args(argv)
+    try:
+        branchings = [layerbvh.check_param("branching", int(k)) for k in args.branchings.split(",")]
+    except ValueError as e:
+        p.error(f"--branchings: {e}")
+    from ..render import use_variant
+    use_variant()
+    if args.mesh:
+        v, f = meshes.load_mesh(args.mesh)
+        name = Path(args.mesh).stem
+    else:
+        v, f = meshes.procedural_mesh(args.procedural_tris, seed=args.seed)
+        name = f"procedural_{args.procedural_tris // 1000}k"
+    command = shlex.join(getattr(sys, "orig_argv", [sys.executable] + sys.argv))
+    cpu = layerbvh.backend.cpu_model()
+    lanes = layerbvh.backend.llvm_vector_width()
+    print(f"# Walk-kernel cost per branching\n\n`{command}`\n\n{cpu}, {os.cpu_count()} cores, {lanes} lanes; "
+          f"{name} ({len(f):,} triangles), {args.rays:,} rays, per_ray, median of {args.runs}\n")
+    print("| rays | K | Mrays/s | IR loop | always | node branch | triangle branch | iters/ray | packet iters/ray "
+          "| SIMD use | ns/packet-iter (per core) | inner/ray | box tests/ray | tris/ray |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    rows = []
+    for kind, gen, seed in (("incoherent", meshes.incoherent_rays, 2), ("camera", meshes.camera_rays, 1)):
+        o, d = gen(v, args.rays, seed=args.seed + seed)
+        for k in branchings:
+            c = measure(v, f, o, d, k, kind, args.runs, args.height)
+            rows.append(asdict(c))
+            print(f"| {kind} | {k} | {c.mrays_s:.2f} | {c.ir['loop']} | {c.ir['always']} | {c.ir['node_branch']} "
+                  f"| {c.ir['triangle_branch']} | {c.iterations_per_ray:.1f} | {c.packet_iterations_per_ray:.2f} "
+                  f"| {c.simd_use:.2f} | {c.ns_per_packet_iteration:.0f} | {c.inner_per_ray:.1f} "
+                  f"| {c.box_tests_per_ray:.1f} | {c.tris_per_ray:.1f} |", flush=True)
+    if args.json:
+        atomic.write_text(args.json, json.dumps({"command": command, "cpu": cpu, "lanes": lanes, "mesh": name,
+                                                 "triangles": int(len(f)), "results": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

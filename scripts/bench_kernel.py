@@ -1,0 +1,7 @@
+"""Entry point: the walk kernel's cost per branching (layerbvh_mitsuba.bench.kernel_cost); run `.venv/bin/python scripts/bench_kernel.py --help`."""
+import sys
+
+from layerbvh_mitsuba.bench.kernel_cost import main
+
+if __name__ == "__main__":
+    sys.exit(main())
