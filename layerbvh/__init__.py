@@ -1,6 +1,6 @@
 """layerbvh: Layer BVH build, layout and exact sorted wavefront traversal on Dr.Jit."""
 from .auto import AUTO, AutoPolicy
-from .inputs import DEFAULT_BRANCHING, DEFAULT_LEAF_SIZE, DEFAULT_TREELET_HEIGHT, PARAM_RANGES, check_mesh, check_param
+from .inputs import DEFAULT_BRANCHING, DEFAULT_LEAF_SIZE, default_leaf_size, DEFAULT_TREELET_HEIGHT, PARAM_RANGES, check_mesh, check_param
 from .bvh import BATCH_RAYS, TRACE_MODES, Hits, LayerBVH, Occlusion, build, build_instanced
 from .instances import Group, Instance
 from .layout import BRANCHINGS, LayerLayout, check_layout
@@ -10,5 +10,5 @@ from .wavefront import MODES
 
 __all__ = ["AUTO", "AutoPolicy", "BATCH_RAYS", "TRACE_MODES", "build", "build_instanced", "Group", "Instance", "LayerBVH", "Hits", "Occlusion", "BVHStats", "TraceStats",
            "LayerLayout", "check_layout", "MODES", "MISS", "PARAM_RANGES", "check_mesh", "check_param",
-           "DEFAULT_TREELET_HEIGHT", "DEFAULT_LEAF_SIZE", "DEFAULT_BRANCHING", "BRANCHINGS"]
+           "DEFAULT_TREELET_HEIGHT", "DEFAULT_LEAF_SIZE", "DEFAULT_BRANCHING", "BRANCHINGS", "default_leaf_size"]
 __version__ = "0.1.0"

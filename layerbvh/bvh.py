@@ -8,7 +8,8 @@ import drjit as dr
 
 from . import backend as be
 from .auto import AUTO, AutoPolicy
-from .inputs import DEFAULT_BRANCHING, DEFAULT_LEAF_SIZE, DEFAULT_TREELET_HEIGHT, RayBatch, check_mesh, check_param, ray_batch
+from .inputs import (DEFAULT_BRANCHING, DEFAULT_TREELET_HEIGHT, RayBatch, check_mesh, check_param, default_leaf_size,
+                     ray_batch)
 from .instances import Group, Instance, InstancedParts, check_instanced, check_instances, instanced_layout
 from .layout import LayerLayout, check_layout, load_builder_kernels, to_layer_layout
 from .sah import BinaryBVH, build_binned_sah, triangle_bounds
@@ -62,7 +63,7 @@ class LayerBVH:
     Given `groups` and `instances` (layerbvh.Group, layerbvh.Instance) in place of vertices and
     faces (None), it is a two-level BVH over instanced geometry (see build_instanced)."""
 
-    def __init__(self, vertices, faces, treelet_height=DEFAULT_TREELET_HEIGHT, leaf_size=DEFAULT_LEAF_SIZE, backend=None, batch_rays=BATCH_RAYS,
+    def __init__(self, vertices, faces, treelet_height=DEFAULT_TREELET_HEIGHT, leaf_size=None, backend=None, batch_rays=BATCH_RAYS,
                  tail_rays=TAIL_RAYS, auto_policy: AutoPolicy | None = None, tail_fraction: float = TAIL_FRACTION,
                  groups: list[Group] | None = None, instances: list[Instance] | None = None,
                  branching: int = DEFAULT_BRANCHING):
@@ -73,7 +74,7 @@ class LayerBVH:
         if not 0.0 <= tail_fraction <= 1.0:
             raise ValueError(f"tail_fraction must be in [0, 1], got {tail_fraction}")
         self.tail_fraction = float(tail_fraction)
-        leaf_size = check_param("leaf_size", leaf_size)
+        leaf_size = check_param("leaf_size", default_leaf_size(branching) if leaf_size is None else leaf_size)
         self.backend = backend or be.default_backend()
         self.m = be.module(self.backend)
         self.auto = auto_policy or AutoPolicy(self.backend)
@@ -221,12 +222,13 @@ class LayerBVH:
         return Hits(t=dr.select(hit, out.t, dr.inf), prim=out.prim, u=out.u, v=out.v, stats=None, instance=out.hit_inst)
 
 
-def build(vertices, faces, treelet_height: int = DEFAULT_TREELET_HEIGHT, leaf_size: int = DEFAULT_LEAF_SIZE,
+def build(vertices, faces, treelet_height: int = DEFAULT_TREELET_HEIGHT, leaf_size: int | None = None,
           backend: str | None = None,
           batch_rays: int = BATCH_RAYS, tail_rays: int = TAIL_RAYS, auto_policy: AutoPolicy | None = None,
           tail_fraction: float = TAIL_FRACTION, branching: int = DEFAULT_BRANCHING) -> LayerBVH:
     """Build a Layer BVH over a triangle mesh: vertices (V, 3) float, faces (F, 3) int.
-    `branching` (2, 4, 8): children per inner node; `batch_rays` bounds how many rays one trace
+    `branching` (2, 4, 8): children per inner node; `leaf_size`: triangles per leaf at most
+    (default: inputs.default_leaf_size of the branching); `batch_rays` bounds how many rays one trace
     call processes at once (peak memory)."""
     return LayerBVH(vertices, faces, treelet_height=treelet_height, leaf_size=leaf_size, backend=backend,
                     batch_rays=batch_rays, tail_rays=tail_rays, auto_policy=auto_policy, tail_fraction=tail_fraction,
@@ -234,7 +236,7 @@ def build(vertices, faces, treelet_height: int = DEFAULT_TREELET_HEIGHT, leaf_si
 
 
 def build_instanced(groups: list[Group], instances: list[Instance], treelet_height: int = DEFAULT_TREELET_HEIGHT,
-                    leaf_size: int = DEFAULT_LEAF_SIZE, backend: str | None = None, batch_rays: int = BATCH_RAYS,
+                    leaf_size: int | None = None, backend: str | None = None, batch_rays: int = BATCH_RAYS,
                     tail_rays: int = TAIL_RAYS, auto_policy: AutoPolicy | None = None,
                     tail_fraction: float = TAIL_FRACTION, branching: int = DEFAULT_BRANCHING) -> LayerBVH:
     """Build a two-level Layer BVH: each group's mesh (layerbvh.Group) gets its own BVH, stored

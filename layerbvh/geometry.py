@@ -111,20 +111,22 @@ def hit_children(m, nodes, node, ray: Ray, t_best, active):
 
 def hit_children_wide(m, nodes, node, ray: Ray, t_best, active, fmt: NodeFormat):
     """Slab-test all child boxes of a wide `node` (record layout `fmt`): per child (hit, entry
-    distance, link), as three lists. The same test, in the same float operations, as
-    hit_children, so a box is hit (and at the same distance) whatever the branching. Empty slots
+    distance, link), as three lists. The same test as hit_children, so a box is hit (and at the
+    same distance) whatever the branching: tn <= min(tf, t_best) * FAR_SCALE is exactly
+    (tn <= tf * FAR_SCALE) & (tn <= t_best * FAR_SCALE), rounding being monotone. Empty slots
     hold EMPTY_BOX, which no ray aims at (and whose link is an empty leaf)."""
     rec = dr.gather(m.ArrayXf, nodes, node, active, shape=(fmt.floats, dr.width(node)))
     hits, ts, links = [], [], []
     for c in range(fmt.branching):
         tn = m.Float(0.0)
-        tf = m.Float(dr.inf)
+        tf = m.Float(t_best)  # min(tf, t_best) * FAR_SCALE rounds as the two tests of hit_children
         for a in range(3):
             t0 = (rec[fmt.lo[c][a]] - ray.o[a]) * ray.inv[a]
             t1 = (rec[fmt.hi[c][a]] - ray.o[a]) * ray.inv[a]
             tn = dr.maximum(tn, dr.minimum(t0, t1))
             tf = dr.minimum(tf, dr.maximum(t0, t1))
-        hits.append(active & (tn <= tf * FAR_SCALE) & (tn <= t_best * FAR_SCALE))
+        # (no `active &`: the caller runs this inside its node branch and reads only its lanes)
+        hits.append(tn <= tf * FAR_SCALE)
         ts.append(tn)
         links.append(dr.reinterpret_array(m.UInt32, rec[fmt.link[c]]))
     return hits, ts, links

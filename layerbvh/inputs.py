@@ -51,10 +51,20 @@ def check_mesh(vertices, faces, name: str = "mesh") -> tuple[np.ndarray, np.ndar
 # Defaults of the build parameters (PERFORMANCE.md entry 20: h = 8 was the best treelet height
 # of both per_ray and the layer modes across the benchmark's ray sets).
 DEFAULT_TREELET_HEIGHT = 8
-DEFAULT_LEAF_SIZE = 4
+DEFAULT_LEAF_SIZE = 4  # the binary BVH's
 # Children per inner node (layout.BRANCHINGS: 2, the paper's binary BVH, or 4, 8 collapsed
 # from it); the default is the fastest measured (PERFORMANCE.md entry 27).
-DEFAULT_BRANCHING = 2
+DEFAULT_BRANCHING = 4
+# A wide BVH is collapsed from a binary tree with smaller leaves: the collapse cannot open a
+# leaf, so smaller leaves fill its nodes, and a triangle costs a loop iteration while a node
+# visit costs one for all its children (PERFORMANCE.md entry 27: leaves of 2 were fastest for
+# 4 and 8 children, leaves of 4 for the binary tree).
+WIDE_LEAF_SIZE = 2
+
+
+def default_leaf_size(branching: int) -> int:
+    """The leaf size a BVH of `branching` children per node is built with unless one is given."""
+    return DEFAULT_LEAF_SIZE if branching == 2 else WIDE_LEAF_SIZE
 
 # Bounds (inclusive) of the build and trace parameters: the one place they are defined.
 PARAM_RANGES = {

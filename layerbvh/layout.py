@@ -65,6 +65,15 @@ EMPTY_LINK = np.uint32(LEAF_BIT)
 EMPTY_BOX = (3.0e38, -3.0e38, 2.0e38)
 
 
+def treelet_levels(height: int, branching: int) -> int:
+    """Levels of the `branching`-wide tree a treelet of height `height` holds. The height counts
+    levels of the binary tree, whatever the branching: a wide level stands for log2(branching)
+    binary levels, so a treelet spans about the same depth, and about the same bytes (height 8:
+    up to 255 binary nodes, 16 KiB; 85 nodes of 4, 11 KiB; 73 nodes of 8, 18 KiB), and the
+    same height means the same thing in every setting (PERFORMANCE.md entry 27)."""
+    return max(1, -(-height // (branching.bit_length() - 1)))
+
+
 @dataclass(frozen=True)
 class NodeFormat:
     """Where each field of an inner-node record of one branching sits (float32 slot indices)."""
@@ -147,7 +156,8 @@ class LayerLayout:
     node_treelet    uint32 (N): treelet of each inner node
     leaf_treelet    uint32 (L): treelet of each leaf's parent
     depth           number of inner-node levels (the longest root-to-leaf path has depth inner nodes)
-    height          treelet height H the layout was cut with (in levels of the branching's tree)
+    height          treelet height H the layout was cut with, in binary levels: each treelet
+                    holds `levels` = treelet_levels(H, branching) levels of this tree
     branching       children per inner node: 2 (the binary BVH) or 4, 8 (collapsed from it)
     instances       float32 (I*16) or None: per instance one 64-byte record (fields INST_*), in an
                     instanced layout (layerbvh.instances), whose first treelets are the top level
@@ -167,6 +177,11 @@ class LayerLayout:
     @property
     def format(self) -> NodeFormat:
         return node_format(self.branching)
+
+    @property
+    def levels(self) -> int:
+        """Levels of this layout's tree per treelet (treelet_levels)."""
+        return treelet_levels(self.height, self.branching)
 
     @property
     def node_count(self) -> int:
@@ -243,7 +258,8 @@ def _wrap_leaf_root(b: BinaryBVH) -> BinaryBVH:
 def to_layer_layout(b: BinaryBVH, vertices: np.ndarray | None, faces: np.ndarray | None, height: int,
                     branching: int = 2) -> LayerLayout:
     """Collapse `b` to `branching` children per node (collapse.collapse; 2 keeps it binary), cut
-    it into treelets of at most `height` levels of that tree and lay it out for traversal.
+    it into treelets of at most treelet_levels(height, branching) levels of that tree (height
+    counts binary levels) and lay it out for traversal.
 
     With vertices and faces None, `b` is a top level over instances (built with leaf size 1):
     each leaf's link is the instance link of its one primitive (an empty leaf keeps an empty
@@ -274,12 +290,12 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray | None, faces: np.ndarray
         d += 1
     bfs = np.concatenate(levels)
     leaf_bfs = np.concatenate(leaf_levels)
-    # Treelet roots are the inner nodes at depths 0, H, 2H, ...; numbering them in breadth-first
-    # order numbers treelets breadth-first, and a stable sort by treelet keeps each treelet's
-    # nodes breadth-first. Leaves belong to their parent's treelet (a leaf at a treelet boundary
+    # Treelet roots are the inner nodes at depths 0, L, 2L, ... (L levels per treelet);
+    # numbering them in breadth-first order numbers treelets breadth-first, and a stable sort by
+    # treelet keeps each treelet's nodes breadth-first. Leaves belong to their parent's treelet (a leaf at a treelet boundary
     # stays with its parent).
     is_root = np.zeros(m, np.bool_)
-    is_root[bfs] = depth[bfs] % height == 0
+    is_root[bfs] = depth[bfs] % treelet_levels(height, branching) == 0
     root_rank = np.full(m, -1, np.int64)
     root_rank[bfs[is_root[bfs]]] = np.arange(int(is_root.sum()))
     tre = np.full(m, -1, np.int64)
@@ -391,7 +407,7 @@ def check_layout(lay: LayerLayout, n_faces: int, instance_ids: np.ndarray | None
 
     With `instance_ids`, `lay` is a top level over these instances (to_layer_layout with no
     triangles): each must sit in exactly one leaf, in place of the triangle checks."""
-    n, nl, nt, h, k = lay.node_count, lay.leaf_count, lay.treelet_count, lay.height, lay.branching
+    n, nl, nt, h, k = lay.node_count, lay.leaf_count, lay.treelet_count, lay.levels, lay.branching
     fmt = lay.format
     rec = lay.records()
     links = lay.links()

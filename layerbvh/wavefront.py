@@ -6,7 +6,7 @@ import time
 import drjit as dr
 
 from .inputs import RayBatch
-from .layout import DeviceLayout
+from .layout import DeviceLayout, treelet_levels
 from .state import DirectRays, RayRecords, RayState, Results, SlotRays
 from .stats import TraceStats
 from .walk import walk
@@ -69,7 +69,8 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, mode: str, any_hit: bool, tail_
     sort = mode == "layer_sorted"
     # A step pushes at most branching - 1 entries per level of its treelet, plus, in an instanced
     # layout, the LEAVE marker of the instance it enters (entering ends the step).
-    cap_local = max(1, (lay.branching - 1) * min(lay.height, lay.depth)) + (1 if instanced else 0)
+    levels = treelet_levels(lay.height, lay.branching)
+    cap_local = max(1, (lay.branching - 1) * min(levels, lay.depth)) + (1 if instanced else 0)
     cap_global = stack_rows(lay)
     # Entries are only read below a ray's stack pointer, so the stacks need no zeroing.
     st_link = dr.empty(m.UInt32, n * cap_global)

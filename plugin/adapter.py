@@ -313,7 +313,7 @@ class SceneTracer:
     Built once per scene; every query returns Mitsuba types (PreliminaryIntersection3f, Bool)."""
 
     def __init__(self, scene, traversal: str = "auto", treelet_height: int = layerbvh.DEFAULT_TREELET_HEIGHT,
-                 leaf_size: int = layerbvh.DEFAULT_LEAF_SIZE,
+                 leaf_size: int | None = None,
                  count_work: bool = True, batch_rays: int = layerbvh.BATCH_RAYS,
                  branching: int = layerbvh.DEFAULT_BRANCHING):
         t0 = time.perf_counter()

@@ -36,7 +36,7 @@ def _parser() -> argparse.ArgumentParser:
                              "the control) (default auto)")
         sp.add_argument("--treelet-height", type=int, default=layerbvh.DEFAULT_TREELET_HEIGHT,
                         help="levels of the BVH per treelet (default %(default)s)")
-        sp.add_argument("--leaf-size", type=int, default=layerbvh.DEFAULT_LEAF_SIZE)
+        sp.add_argument("--leaf-size", type=int, help="triangles per BVH leaf at most (default: 4 binary, 2 wide)")
         sp.add_argument("--branching", type=int, default=layerbvh.DEFAULT_BRANCHING,
                         help="children per BVH node: 2 (the paper's binary BVH), 4 or 8 (default %(default)s)")
         sp.add_argument("--variant", default="llvm_ad_rgb",
@@ -65,7 +65,7 @@ def _parser() -> argparse.ArgumentParser:
     v.add_argument("--ref-spp", type=int, default=4096, help="spp of the stock reference (default %(default)s)")
     v.add_argument("--max-spp", type=int, help="stop doubling here even within budget (default ref spp / 16)")
     v.add_argument("--res", type=int, nargs=2, metavar=("W", "H"), help="film resolution (default: the scene's)")
-    v.add_argument("--leaf-size", type=int, default=layerbvh.DEFAULT_LEAF_SIZE)
+    v.add_argument("--leaf-size", type=int, help="triangles per BVH leaf at most (default: 4 binary, 2 wide)")
     v.add_argument("--branching", type=int, default=layerbvh.DEFAULT_BRANCHING,
                    help="children per BVH node of the layerbvh configurations: 2, 4 or 8 (default %(default)s)")
     v.add_argument("--cache", help="reference cache folder (default $XDG_CACHE_HOME/layerbvh/references)")
@@ -138,7 +138,8 @@ def _check_memory(scene, spp: int, integ) -> None:
 def _ours_props(args, props, stats=False, traversal=None) -> dict:
     """The layerbvh integrator's properties for these options and path settings."""
     return {"traversal": traversal or args.traversal, "treelet_height": args.treelet_height,
-            "leaf_size": args.leaf_size, "branching": args.branching, "stats": stats, **props}
+            "branching": args.branching, "stats": stats, **props,
+            **({} if args.leaf_size is None else {"leaf_size": args.leaf_size})}
 
 
 def _ours(mi, args, props, stats=False, traversal=None):

@@ -470,7 +470,8 @@ def run(mi, args) -> dict:
     with tqdm(total=renders, desc="converge", unit="render", disable=not progress, file=sys.stderr) as bar:
         for i, cfg in enumerate(configs):
             run_config(mi, scene, cfg, i, props, ref, args.budget, max_spp,
-                       {"leaf_size": args.leaf_size, "branching": args.branching}, bar)
+                       {"branching": args.branching, **({} if args.leaf_size is None else {"leaf_size": args.leaf_size})},
+                       bar)
             cfg.fit = fits(cfg)
             bar.total = bar.n + (len(configs) - i - 1) * (int(math.log2(max_spp)) + 1)
     table = equal_time_error_table(configs)

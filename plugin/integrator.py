@@ -30,7 +30,7 @@ def mis_weight(pdf_a, pdf_b):
     return dr.select(dr.isfinite(w), w, 0)
 
 
-def check_settings(max_depth: int, rr_depth: int, traversal: str, treelet_height: int, leaf_size: int,
+def check_settings(max_depth: int, rr_depth: int, traversal: str, treelet_height: int, leaf_size: int | None,
                    batch_rays: int, branching: int = layerbvh.DEFAULT_BRANCHING) -> None:
     """The integrator's rules for its properties (the CLI and converge check the same way):
     a ValueError naming the property and what it must be."""
@@ -41,7 +41,8 @@ def check_settings(max_depth: int, rr_depth: int, traversal: str, treelet_height
     if traversal not in TRAVERSALS:
         raise ValueError(f"traversal must be one of {', '.join(TRAVERSALS)}; got {traversal!r}")
     layerbvh.check_param("treelet_height", treelet_height)
-    layerbvh.check_param("leaf_size", leaf_size)
+    if leaf_size is not None:  # None: the branching's default (layerbvh.default_leaf_size)
+        layerbvh.check_param("leaf_size", leaf_size)
     layerbvh.check_param("batch_rays", batch_rays)
     layerbvh.check_param("branching", branching)
 
@@ -124,7 +125,8 @@ class LayerBVHPathTracer:
     | ``embree``, default ``auto``: per ray batch, the faster of per_ray and layer_sorted, timed
     once per kind of batch; ``embree``: this loop with Mitsuba's own queries, the control that
     isolates the traversal), ``branching`` (children per BVH node: 2, 4 or 8; default
-    layerbvh.DEFAULT_BRANCHING), ``treelet_height`` (8, levels of that tree), ``leaf_size`` (4), ``stats`` (false:
+    layerbvh.DEFAULT_BRANCHING), ``treelet_height`` (8, levels of that tree), ``leaf_size``
+    (default 4 binary, 2 wide: layerbvh.default_leaf_size), ``stats`` (false:
     collect traversal work counts), ``adaptive`` (true: leave out what the scene does not need),
     ``batch_rays`` (2^20: rays traced per batch; bounds the traversal's work memory).
 
@@ -142,7 +144,7 @@ class LayerBVHPathTracer:
         self.hide_emitters = props.get("hide_emitters", False)
         self.traversal = props.get("traversal", "auto")
         self.treelet_height = props.get("treelet_height", layerbvh.DEFAULT_TREELET_HEIGHT)
-        self.leaf_size = props.get("leaf_size", layerbvh.DEFAULT_LEAF_SIZE)
+        self.leaf_size = props.get("leaf_size", None)
         self.branching = props.get("branching", layerbvh.DEFAULT_BRANCHING)
         self.stats = props.get("stats", False)
         self.adaptive = props.get("adaptive", True)

@@ -65,7 +65,7 @@ def test_one_exit_rule_returns_a_wrong_hit_and_ours_does_not():
     v = np.array(far + near, np.float32)
     f = np.array([[0, 1, 2], [3, 4, 5]])
     o, d = np.array([[0, 0, 0]], np.float32), np.array([[0, 0, 1]], np.float32)
-    bvh = layerbvh.build(v, f, treelet_height=1, leaf_size=1)
+    bvh = layerbvh.build(v, f, branching=2, treelet_height=1, leaf_size=1)
     bvh.check()
     paper_t, paper_prim = one_exit_trace(bvh.layout, o[0].astype(np.float64), d[0].astype(np.float64))
     assert paper_prim == 0 and abs(paper_t - 5.25) < 1e-5, "the one-exit rule follows the nearer box"
@@ -81,7 +81,7 @@ def test_one_exit_rule_is_wrong_often_on_a_real_mesh(bunny):
     0.5 ulp)."""
     v, f = bunny
     rng = np.random.default_rng(5)
-    bvh = layerbvh.build(v, f, treelet_height=2, tail_rays=0, tail_fraction=0.0)  # the steps, no per-ray tail
+    bvh = layerbvh.build(v, f, branching=2, treelet_height=2, tail_rays=0, tail_fraction=0.0)  # the steps, no per-ray tail
     lo, hi = v.min(0), v.max(0)
     o = (lo + (hi - lo) * rng.random((60, 3))).astype(np.float32)
     d = rng.normal(size=(60, 3)).astype(np.float32)

@@ -262,7 +262,7 @@ def test_instanced_wide_trees_return_the_binary_hits(forest, branching):
     """Two-level BVHs with 4- and 8-wide nodes (top level and groups): every mode returns binary
     per_ray's instance, prim and t bits, closest and any hit."""
     o, d = forest["rays"]["incoherent"]
-    ref = layerbvh.build_instanced(forest["groups"], forest["instances"], treelet_height=4).trace(o, d, mode="per_ray")
+    ref = layerbvh.build_instanced(forest["groups"], forest["instances"], treelet_height=4, branching=2).trace(o, d, mode="per_ray")
     bvh = layerbvh.build_instanced(forest["groups"], forest["instances"], treelet_height=2, branching=branching,
                                    tail_rays=0, tail_fraction=0.0)
     bvh.check()

@@ -28,7 +28,7 @@ def _degenerate_cases():
 @pytest.mark.parametrize("height", [1, 2, 3, 4, 8])
 def test_layout_invariants_bunny(bunny, height):
     v, f = bunny
-    bvh = layerbvh.build(v, f, treelet_height=height)
+    bvh = layerbvh.build(v, f, branching=2, treelet_height=height)
     bvh.check()
     s = bvh.stats
     counts = np.array(s.treelet_node_counts)
@@ -45,7 +45,7 @@ def test_layout_invariants_bunny(bunny, height):
 @pytest.mark.parametrize("leaf_size", [1, 4, 16])
 def test_layout_invariants_random_and_procedural(procedural, leaf_size):
     for v, f in (_soup(5000, seed=leaf_size), procedural):
-        bvh = layerbvh.build(v, f, treelet_height=3, leaf_size=leaf_size)
+        bvh = layerbvh.build(v, f, branching=2, treelet_height=3, leaf_size=leaf_size)
         bvh.check()
         lv = bvh.layout.leaves.reshape(-1, 2)
         assert lv[:, 1].max() <= leaf_size
@@ -81,7 +81,7 @@ def test_empty_mesh_misses_everything():
 
 def test_check_layout_catches_corruption(bunny):
     v, f = bunny
-    bvh = layerbvh.build(v, f, treelet_height=3)
+    bvh = layerbvh.build(v, f, branching=2, treelet_height=3)
     lay = bvh.layout
     links = lay.links()
     inner = np.nonzero((links[:, 0] & (LEAF_BIT | EXIT_BIT)) == 0)[0]
@@ -114,7 +114,7 @@ def test_compiled_records_match_numpy(bunny):
     v, f = bunny
     lo, hi = triangle_bounds(v, f)
     assert np.array_equal(lo, v[f].min(1)) and np.array_equal(hi, v[f].max(1))
-    lay = layerbvh.build(v, f).layout
+    lay = layerbvh.build(v, f, branching=2).layout
     rec = lay.tris.reshape(-1, 16)
     ids = rec[:, 9].view(np.uint32)
     p = v[f[ids]].astype(np.float64)
@@ -126,7 +126,7 @@ def test_sah_split_quality(bunny):
     """The builder's SAH cost (inner node area + leaf area x triangles, over the root's area)
     stays at a binned SAH's level; a median or random split scores far worse on the bunny."""
     v, f = bunny
-    b = layerbvh.build(v, f).binary
+    b = layerbvh.build(v, f, branching=2).binary
     e = np.maximum(b.hi.astype(np.float64) - b.lo, 0)
     area = e[:, 0] * e[:, 1] + e[:, 1] * e[:, 2] + e[:, 2] * e[:, 0]
     inner = b.left >= 0
@@ -145,7 +145,7 @@ def test_single_treelet_takes_one_step(bunny):
     """When one treelet holds the whole BVH, no ray ever leaves it: one wavefront step."""
     v, f = bunny
     o, d = meshes.incoherent_rays(v, 5000, 1)
-    bvh = layerbvh.build(v, f, treelet_height=64)
+    bvh = layerbvh.build(v, f, branching=2, treelet_height=64)
     assert bvh.stats.treelets == 1
     for mode in ("layer_sorted", "layer_unsorted"):
         h = bvh.trace(o, d, mode=mode)
@@ -155,7 +155,7 @@ def test_single_treelet_takes_one_step(bunny):
 def test_step_statistics(bunny):
     v, f = bunny
     o, d = meshes.incoherent_rays(v, 5000, 2)
-    bvh = layerbvh.build(v, f, treelet_height=3)
+    bvh = layerbvh.build(v, f, branching=2, treelet_height=3)
     h = bvh.trace(o, d, mode="layer_sorted")
     st = h.stats
     a = st.active_per_step

@@ -40,7 +40,7 @@ def test_collapse_pulls_up_the_largest_children(procedural, branching):
     """Every wide node is full or has only leaves below its slots, and every binary node it
     opened is at least as large (surface area) as any inner child it kept: the greedy rule."""
     v, f = procedural
-    b = layerbvh.build(v, f).binary
+    b = layerbvh.build(v, f, branching=2).binary
     wide = collapse(b, branching)
     area = surface_areas(b)
     inner = b.left >= 0
@@ -69,9 +69,9 @@ def test_collapse_pulls_up_the_largest_children(procedural, branching):
 @pytest.mark.parametrize("height", [1, 2, 3, 8])
 def test_wide_layout_invariants(bunny, branching, height):
     v, f = bunny
-    wide = layerbvh.build(v, f, treelet_height=height, branching=branching)
+    wide = layerbvh.build(v, f, treelet_height=height, branching=branching, leaf_size=4)  # the binary's leaves
     wide.check()
-    binary = layerbvh.build(v, f, treelet_height=height)
+    binary = layerbvh.build(v, f, treelet_height=height, branching=2)
     lay, bl = wide.layout, binary.layout
     assert lay.records().shape[1] * 4 == {4: 128, 8: 256}[branching]
     assert lay.node_count < bl.node_count / (0.8 * math.log2(branching))
@@ -84,7 +84,7 @@ def test_wide_layout_invariants(bunny, branching, height):
 
 def test_check_layout_catches_wide_corruption(bunny):
     v, f = bunny
-    lay = layerbvh.build(v, f, treelet_height=2, branching=4).layout
+    lay = layerbvh.build(v, f, treelet_height=8, branching=4).layout
     links, rec, fmt = lay.links(), lay.records(), lay.format
     part = np.nonzero(lay.children() < 4)[0]
     assert len(part), "the bunny's BVH4 should have a node with an empty slot"
@@ -112,7 +112,7 @@ def test_every_mode_returns_the_binary_per_ray_bits(procedural, branching, kind)
     binary per_ray's; with treelets of 2 levels the layer modes take many wavefront steps."""
     v, f = procedural
     o, d = _rays(v, kind)
-    binary = layerbvh.build(v, f, treelet_height=4)
+    binary = layerbvh.build(v, f, treelet_height=4, branching=2)
     ref = binary.trace(o, d, mode="per_ray")
     ref_occ = binary.occluded(o, d, np.full(len(o), np.inf, np.float32), mode="per_ray").occluded
     assert np.mean(ref.prim != layerbvh.MISS) > 0.2, "test rays should mostly hit"
@@ -149,7 +149,7 @@ def test_ties_go_to_the_lowest_primitive_whatever_the_branching():
     n = 20_000
     o = np.stack([rng.uniform(0, g, n), rng.uniform(0, g, n), rng.uniform(1, 5, n)], 1).astype(np.float32)
     d = np.stack([rng.normal(0, 0.2, n), rng.normal(0, 0.2, n), -np.ones(n)], 1).astype(np.float32)
-    ref = layerbvh.build(v, faces, leaf_size=1).trace(o, d, mode="per_ray")
+    ref = layerbvh.build(v, faces, leaf_size=1, branching=2).trace(o, d, mode="per_ray")
     hit = ref.prim != layerbvh.MISS
     assert hit.mean() > 0.9
     copies = {}
@@ -169,7 +169,7 @@ def test_trace_inline_on_a_wide_tree(procedural, branching):
     import drjit as dr
     v, f = procedural
     o, d = _rays(v, "incoherent", 20_000)
-    ref = layerbvh.build(v, f).trace(o, d, mode="per_ray")
+    ref = layerbvh.build(v, f, branching=2).trace(o, d, mode="per_ray")
     bvh = layerbvh.build(v, f, branching=branching)
     F = bvh.m.Float
     h = bvh.trace_inline([F(o[:, c]) for c in range(3)], [F(d[:, c]) for c in range(3)], F(np.inf), bvh.m.Bool(True))

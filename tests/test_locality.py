@@ -34,7 +34,7 @@ def test_trace_follows_the_kernel(request, mesh_name, kind, any_hit):
     o, d, tmax = _rays(v, kind)
     if any_hit:  # shadow-like: finite tmax, some rays stop short of the mesh
         tmax = np.random.default_rng(1).uniform(0.0, 2.0, len(o)).astype(np.float32) * np.ptp(v, 0).max()
-    bvh = layerbvh.build(v, f, treelet_height=3, batch_rays=len(o), tail_rays=256, tail_fraction=0.05)
+    bvh = layerbvh.build(v, f, branching=2, treelet_height=3, batch_rays=len(o), tail_rays=256, tail_fraction=0.05)
     for mode in layerbvh.MODES:
         rep = L.replay(bvh.layout, o, d, tmax, mode, any_hit, 32, preset("gtx965m"), bvh.tail_rays, bvh.tail_fraction)
         chk = L.check_trace(bvh, o, d, tmax, any_hit, rep)
@@ -60,7 +60,7 @@ def test_two_warps_transactions_by_hand():
     local entry stack's read and write (link and t) in both iterations (4 lanes x 4 bytes: one
     sector each; 8). Warp 1 finds its rays, the root and the local stack in L1."""
     v, f = _two_triangles()
-    bvh = layerbvh.build(v, f, treelet_height=8, leaf_size=1, batch_rays=8)
+    bvh = layerbvh.build(v, f, branching=2, treelet_height=8, leaf_size=1, batch_rays=8)
     x = np.array([-1.6, -1.5, -1.4, -1.5, 1.4, 1.5, 1.6, 1.5], np.float32)
     o = np.stack([x, np.zeros(8, np.float32), np.ones(8, np.float32)], 1)
     d = np.tile(np.array([[0, 0, -1]], np.float32), (8, 1))
@@ -103,7 +103,7 @@ def test_sorting_must_cut_transactions():
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     o = np.tile(((v.min(0) + v.max(0)) / 2)[None].astype(np.float32), (n, 1))
     tmax = np.full(n, np.inf, np.float32)
-    bvh = layerbvh.build(v, f, treelet_height=4, batch_rays=n)
+    bvh = layerbvh.build(v, f, branching=2, treelet_height=4, batch_rays=n)
     rows = {m: L.row("fan", L.replay(bvh.layout, o, d, tmax, m, False, 32, preset("h200")), 4) for m in layerbvh.MODES}
     s, u, p = rows["layer_sorted"], rows["layer_unsorted"], rows["per_ray"]
     assert s.node_transactions_per_ray < 0.5 * u.node_transactions_per_ray, (s, u)
@@ -122,7 +122,7 @@ def test_sorting_cannot_cut_transactions_of_identical_rays():
     o = np.tile(np.array([[v[:, 0].min() - 1, 0.1, 0.2]], np.float32), (n, 1))
     d = np.tile(np.array([[1, 0.05, 0.02]], np.float32), (n, 1))
     tmax = np.full(n, np.inf, np.float32)
-    bvh = layerbvh.build(v, f, treelet_height=4, batch_rays=n)
+    bvh = layerbvh.build(v, f, branching=2, treelet_height=4, batch_rays=n)
     reps = {m: L.replay(bvh.layout, o, d, tmax, m, False, 32, preset("h200")) for m in layerbvh.MODES}
     rows = {m: L.row("same", rep, 4) for m, rep in reps.items()}
     for m, rep in reps.items():  # each node a ray visits: one 64-byte record, 2 sectors, for the whole warp

@@ -12,11 +12,10 @@ from layerbvh_mitsuba import testing
 from layerbvh_mitsuba.adapter import UnsupportedShapeError
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
-# The layer modes' image tests build treelets of 3 levels: at the default height 8, cbox, empty_box
-# and sphere_box are one treelet each, where a layer mode cannot differ from per_ray. At height 3:
-# cbox 6 treelets (3.6 wavefront steps per query), empty_box and sphere_box 2 (1.8), bunny_box
-# thousands. Each such test asserts the layer path ran (conftest.layer_path_ran).
-LAYER_HEIGHT = 3
+# The layer modes' image tests build treelets of height 2 (one level of the default 4-wide tree):
+# at the default height 8, cbox, empty_box and sphere_box are one treelet each, where a layer mode
+# cannot differ from per_ray. Each such test asserts the layer path ran (conftest.layer_path_ran).
+LAYER_HEIGHT = 2
 
 
 def _ours_props(traversal: str) -> dict | None:

@@ -9,6 +9,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
+import layerbvh
 from layerbvh_mitsuba import sweep
 from layerbvh_mitsuba.cli import main
 from layerbvh_mitsuba.metrics import AGREES, SAME_PATHS
@@ -40,7 +41,7 @@ def test_compare_grid_matches_single_commands_and_resumes(tmp_path, capsys):
     assert main(argv) == 0
     rows = _rows(out)
     assert [(Path(r["scene"]).name, r["config"]) for r in rows] == [
-        (s.name, f"{t} h=8") for s in scenes for t in ("per_ray", "layer_sorted")]
+        (s.name, f"{t} K={layerbvh.DEFAULT_BRANCHING} h=8") for s in scenes for t in ("per_ray", "layer_sorted")]
     assert all(r["status"] == "ok" and r["verdict"] in (SAME_PATHS, AGREES) and r["host"] for r in rows), rows
     assert sorted(_last_run(out)["ran"]) == sorted(r["key"] for r in rows)
 

@@ -107,6 +107,7 @@ class KernelCost:
     branching: int
     rays: str
     mrays_s: float
+    speedup_vs_first: float    # median over rounds of (first branching's time / this one's)
     ir: dict
     iterations_per_ray: float
     packet_iterations_per_ray: float
@@ -124,34 +125,54 @@ def packet_iterations(iters: np.ndarray, lanes: int) -> int:
     return int(np.concatenate([iters, np.zeros(pad, iters.dtype)]).reshape(-1, lanes).max(1).sum())
 
 
-def measure(v, f, o, d, branching: int, kind: str, runs: int, height: int) -> KernelCost:
-    bvh = layerbvh.build(v, f, branching=branching, treelet_height=height)
-    m = bvh.m
-    o_dev = m.Array3f(*(m.Float(np.ascontiguousarray(o[:, c])) for c in range(3)))
-    d_dev = m.Array3f(*(m.Float(np.ascontiguousarray(d[:, c])) for c in range(3)))
-    dr.eval(o_dev, d_dev)
-    ir = capture_ir(lambda: dr.eval(bvh.trace(o_dev, d_dev, mode="per_ray", stats=False).t))
-    counted = bvh.trace(o_dev, d_dev, mode="per_ray", stats=True)
-    iters = np.asarray(counted.work["iterations"].numpy(), np.int64)
-    lanes = layerbvh.backend.llvm_vector_width() if bvh.backend == "llvm" else 32
-    times = []
-    for _ in range(runs):
+class _Setup:
+    """One branching's BVH, its rays on the device, IR and counted work (before any timing)."""
+
+    def __init__(self, v, f, o, d, branching: int, height: int):
+        self.branching = branching
+        self.bvh = bvh = layerbvh.build(v, f, branching=branching, treelet_height=height)
+        m = bvh.m
+        self.o = m.Array3f(*(m.Float(np.ascontiguousarray(o[:, c])) for c in range(3)))
+        self.d = m.Array3f(*(m.Float(np.ascontiguousarray(d[:, c])) for c in range(3)))
+        dr.eval(self.o, self.d)
+        self.ir = count_ir(capture_ir(lambda: dr.eval(bvh.trace(self.o, self.d, mode="per_ray", stats=False).t)))
+        self.counted = bvh.trace(self.o, self.d, mode="per_ray", stats=True)
+        self.iters = np.asarray(self.counted.work["iterations"].numpy(), np.int64)
+        self.times = []
+
+    def run(self) -> None:
         dr.sync_thread()
         t0 = time.perf_counter()
-        h = bvh.trace(o_dev, d_dev, mode="per_ray", stats=False)
+        h = self.bvh.trace(self.o, self.d, mode="per_ray", stats=False)
         dr.eval(h.t, h.prim)
         dr.sync_thread()
-        times.append(time.perf_counter() - t0)
-    secs = float(np.median(times))
-    p_iter = packet_iterations(iters, lanes)
-    st = counted.stats
-    n = len(o)
-    return KernelCost(branching=branching, rays=kind, mrays_s=n / secs / 1e6, ir=asdict(count_ir(ir)) | {"always": count_ir(ir).always},
-                      iterations_per_ray=float(iters.mean()), packet_iterations_per_ray=p_iter / n,
-                      simd_use=float(iters.sum()) / (lanes * p_iter),
-                      ns_per_packet_iteration=secs * dr.thread_count() / p_iter * 1e9,
-                      inner_per_ray=st.inner_nodes_per_ray, box_tests_per_ray=st.inner_nodes_per_ray * branching,
-                      tris_per_ray=st.triangles_per_ray)
+        self.times.append(time.perf_counter() - t0)
+
+
+def measure(v, f, o, d, branchings: list[int], kind: str, runs: int, height: int) -> list[KernelCost]:
+    """KernelCost of each branching on the same rays; the timed runs go round-robin over the
+    branchings (one of each per round), so drifts of a shared machine hit all alike."""
+    setups = [_Setup(v, f, o, d, k, height) for k in branchings]
+    for r in range(runs):
+        for s in setups[r % len(setups):] + setups[:r % len(setups)]:
+            s.run()
+    lanes = layerbvh.backend.llvm_vector_width() if setups[0].bvh.backend == "llvm" else 32
+    base = setups[0].times
+    out = []
+    for s in setups:
+        secs = float(np.median(s.times))
+        p_iter = packet_iterations(s.iters, lanes)
+        st, n = s.counted.stats, len(o)
+        out.append(KernelCost(
+            branching=s.branching, rays=kind, mrays_s=n / secs / 1e6,
+            speedup_vs_first=float(np.median([b / t for b, t in zip(base, s.times)])),
+            ir=asdict(s.ir) | {"always": s.ir.always},
+            iterations_per_ray=float(s.iters.mean()), packet_iterations_per_ray=p_iter / n,
+            simd_use=float(s.iters.sum()) / (lanes * p_iter),
+            ns_per_packet_iteration=secs * dr.thread_count() / p_iter * 1e9,
+            inner_per_ray=st.inner_nodes_per_ray, box_tests_per_ray=st.inner_nodes_per_ray * s.branching,
+            tris_per_ray=st.triangles_per_ray))
+    return out
 
 
 def main(argv=None) -> int:
@@ -181,17 +202,18 @@ def main(argv=None) -> int:
     cpu = layerbvh.backend.cpu_model()
     lanes = layerbvh.backend.llvm_vector_width()
     print(f"# Walk-kernel cost per branching\n\n`{command}`\n\n{cpu}, {os.cpu_count()} cores, {lanes} lanes; "
-          f"{name} ({len(f):,} triangles), {args.rays:,} rays, per_ray, median of {args.runs}\n")
-    print("| rays | K | Mrays/s | IR loop | always | node branch | triangle branch | iters/ray | packet iters/ray "
+          f"{name} ({len(f):,} triangles), {args.rays:,} rays, per_ray, median of {args.runs} interleaved rounds; "
+          f"× first K: median per-round speed-up over the first branching listed\n")
+    print("| rays | K | Mrays/s | × first K | IR loop | always | node branch | triangle branch | iters/ray | packet iters/ray "
           "| SIMD use | ns/packet-iter (per core) | inner/ray | box tests/ray | tris/ray |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     rows = []
     for kind, gen, seed in (("incoherent", meshes.incoherent_rays, 2), ("camera", meshes.camera_rays, 1)):
         o, d = gen(v, args.rays, seed=args.seed + seed)
-        for k in branchings:
-            c = measure(v, f, o, d, k, kind, args.runs, args.height)
+        for c in measure(v, f, o, d, branchings, kind, args.runs, args.height):
+            k = c.branching
             rows.append(asdict(c))
-            print(f"| {kind} | {k} | {c.mrays_s:.2f} | {c.ir['loop']} | {c.ir['always']} | {c.ir['node_branch']} "
+            print(f"| {kind} | {k} | {c.mrays_s:.2f} | {c.speedup_vs_first:.2f} | {c.ir['loop']} | {c.ir['always']} | {c.ir['node_branch']} "
                   f"| {c.ir['triangle_branch']} | {c.iterations_per_ray:.1f} | {c.packet_iterations_per_ray:.2f} "
                   f"| {c.simd_use:.2f} | {c.ns_per_packet_iteration:.0f} | {c.inner_per_ray:.1f} "
                   f"| {c.box_tests_per_ray:.1f} | {c.tris_per_ray:.1f} |", flush=True)
