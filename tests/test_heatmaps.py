@@ -37,7 +37,9 @@ def test_heat_maps_sum_to_the_totals(traversal):
 def test_a_bunny_costs_more_than_an_empty_box():
     empty, _ = _counted("empty_box", "per_ray")
     bunny, _ = _counted("bunny_box", "per_ray")
-    assert bunny["camera_inner"].mean() > 2 * empty["camera_inner"].mean()
+    # (over 2x with the binary tree; 1.9x measured with the default 4-wide one, whose nodes each
+    # stand for two binary levels: the bunny adds fewer, wider node visits)
+    assert bunny["camera_inner"].mean() > 1.6 * empty["camera_inner"].mean()
     # ... and where the bunny is: the busiest tenth of the pixels are far above the box's walls.
     cam = bunny["camera_inner"]
     assert np.percentile(cam, 95) > 3 * np.median(cam)
