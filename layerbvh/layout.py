@@ -331,13 +331,22 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray | None, faces: np.ndarray
 
     rec = np.zeros((len(order), fmt.floats), np.float32)
     bits = rec.view(np.uint32)
+    # Child boxes are stored one float step larger on every side. A ray with a zero direction
+    # component that lies exactly in a box's face plane gets (hi - o) * inv = 0 there (inv is
+    # finite, geometry.MIN_RCP_INPUT), an empty slab interval, and would miss the closed box
+    # and the triangles touching that face: a tie (a hit on a shared edge) would then go to
+    # whichever triangle's box happens not to end there, so the answer would depend on the
+    # tree. One step out, such a ray is strictly inside the slab; a ray in the widened face
+    # plane lies outside the true box and can hit nothing in it.
+    lo_out = np.nextafter(b.lo, np.float32(-np.inf))
+    hi_out = np.nextafter(b.hi, np.float32(np.inf))
     for k in range(branching):
         child = kids[order, k]
         real = child >= 0
         c = np.maximum(child, 0)
         for a in range(3):
-            rec[:, fmt.lo[k][a]] = np.where(real, b.lo[c, a], np.float32(EMPTY_BOX[a]))
-            rec[:, fmt.hi[k][a]] = np.where(real, b.hi[c, a], np.float32(EMPTY_BOX[a]))
+            rec[:, fmt.lo[k][a]] = np.where(real, lo_out[c, a], np.float32(EMPTY_BOX[a]))
+            rec[:, fmt.hi[k][a]] = np.where(real, hi_out[c, a], np.float32(EMPTY_BOX[a]))
         bits[:, fmt.link[k]] = np.where(real, link(c, order), EMPTY_LINK)
     rec[:, fmt.depth] = depth[order]
     rec[:, fmt.children] = (kids[order] >= 0).sum(1)

@@ -103,13 +103,16 @@ def bunny() -> tuple[np.ndarray, np.ndarray]:
 
 
 def trace_modes(v, f, o, d, tmax=None, **build):
-    """Our hits in every mode (per_ray's returned) and how many rays any other mode answers differently."""
+    """Our hits in every mode on every branching (the default BVH and its per_ray hits returned)
+    and how many rays any other mode or branching answers differently (bits of prim, t, u, v)."""
     import layerbvh
-    bvh = layerbvh.build(np.asarray(v, np.float32), f, **build)
-    hits = {m: bvh.trace(o, d, tmax, mode=m, stats=False) for m in layerbvh.MODES}
-    ref = hits["per_ray"]
+    v32 = np.asarray(v, np.float32)
+    bvhs = {k: layerbvh.build(v32, f, **{**build, "branching": k}) for k in layerbvh.BRANCHINGS}
+    bvh = bvhs[build.get("branching", layerbvh.DEFAULT_BRANCHING)]
+    ref = bvh.trace(o, d, tmax, mode="per_ray", stats=False)
+    hits = [b.trace(o, d, tmax, mode=m, stats=False) for b in bvhs.values() for m in layerbvh.MODES]
     differ = np.zeros(len(o), bool)
-    for h in hits.values():
+    for h in hits:
         for a, b in ((h.prim, ref.prim), (h.t, ref.t), (h.u, ref.u), (h.v, ref.v)):
             differ |= ~((a == b) | (np.isnan(a) & np.isnan(b)) if a.dtype.kind == "f" else (a == b))
     return bvh, ref, int(differ.sum())
