@@ -32,7 +32,7 @@ def main(argv=None) -> int:
     z = np.load(folder / "rays.npz")
     model = json.loads((folder / "model.json").read_text())
     h = model["treelet_height"]
-    bvh = layerbvh.build(z["vertices"], z["faces"], treelet_height=h, backend=args.backend)
+    bvh = layerbvh.build(z["vertices"], z["faces"], treelet_height=h, backend=args.backend, branching=2)  # the model's tree
     print(f"backend {args.backend}; {len(z['faces']):,} triangles, treelet height {h}; model preset "
           f"{model['preset']['name']}")
     print(f"{'kind':22} {'rays':>8} {'per_ray Mrays/s':>16} {'sorted Mrays/s':>15} {'measured sorted x per_ray':>26} "

@@ -156,6 +156,22 @@ MUTATIONS = (
              "            if j > 0 and out[j - 1] == s:\n                continue\n",
              "",
              ("tests/test_memmodel.py::test_coalesce_broadcast_is_one_segment",)),
+    Mutation("wide_drops_farthest_child", "a wide node pushes one entry fewer than it hits (the farthest hit child "
+             "is dropped)",
+             "layerbvh/walk.py",
+             "n_push = dr.select(n_hit > 1, n_hit - 1, m.UInt32(0))",
+             "n_push = dr.select(n_hit > 2, n_hit - 2, m.UInt32(0))",
+             ("tests/test_engine_wide.py::test_every_mode_returns_the_binary_per_ray_bits[camera-4]",)),
+    Mutation("collapse_opens_smallest", "the collapse pulls up the child of smallest surface area",
+             "layerbvh/collapse.py",
+             "if left[c] >= 0 and area[c] > best_area:",
+             "if left[c] >= 0 and (best < 0 or area[c] < best_area):",
+             ("tests/test_engine_wide.py::test_collapse_pulls_up_the_largest_children[4]",)),
+    Mutation("boxes_not_widened", "child boxes are stored as built (a ray in a box's face plane misses it)",
+             "layerbvh/layout.py",
+             "    lo_out = np.nextafter(b.lo, np.float32(-np.inf))\n    hi_out = np.nextafter(b.hi, np.float32(np.inf))\n",
+             "    lo_out, hi_out = b.lo, b.hi\n",
+             ("tests/test_stability.py::test_case[axis_aligned_rays]",)),
 )
 
 

@@ -32,7 +32,7 @@ def prepare(scene: str, out: Path, preset: str, height: int, res, spp: int, rays
     sets = [RaySet(k, *rays[k], any_hit=k == "shadow") for k in KINDS if k in rays]
     run = measure(v, f, sets, LocalitySettings(modes=MODES, presets=(preset,), treelet_heights=(height,)), 4)
     arrays = {"vertices": np.asarray(v, np.float32), "faces": np.asarray(f, np.int64)}
-    bvh = layerbvh.build(v, f, treelet_height=height, batch_rays=max(len(s.o) for s in sets))
+    bvh = layerbvh.build(v, f, treelet_height=height, branching=2, batch_rays=max(len(s.o) for s in sets))
     for s in sets:  # the replay's hits: what the LLVM kernel returns, bit for bit (checked in measure)
         rep = replay(bvh.layout, s.o, s.d, s.tmax, "per_ray", s.any_hit, 32, named_preset(preset))
         arrays.update({f"{s.kind}_o": s.o, f"{s.kind}_d": s.d, f"{s.kind}_tmax": s.tmax, f"{s.kind}_prim": rep.prim,

@@ -35,9 +35,20 @@ def ray_sets(rows: list[dict]) -> dict:
     return out
 
 
-def best(rows: list[dict], mode: str) -> dict | None:
-    cands = [r for r in rows if r["mode"] == mode]
+def best(rows: list[dict], mode: str, branching: int | None = None) -> dict | None:
+    """The fastest row of `mode` (of one branching if given; rows from before branching was an
+    axis are binary)."""
+    cands = [r for r in rows if r["mode"] == mode and (branching is None or _k(r) == branching)]
     return max(cands, key=lambda r: r["mrays_s"]) if cands else None
+
+
+def _k(r: dict) -> int | None:
+    return None if r["mode"] == "embree" else r.get("branching") or 2
+
+
+def layout_of(r: dict) -> str:
+    """A row's layout as tables show it: K (children per node) and treelet height."""
+    return f"K={_k(r)} h={r['treelet_height']}"
 
 
 def work_memory(r: dict) -> float | None:
@@ -56,10 +67,12 @@ def headline_rows(rows: list[dict]) -> list[dict]:
         if not (emb and per and srt):
             continue
         mem_s, mem_p = work_memory(srt), work_memory(per)
+        binary = best(rs, "per_ray", 2)
         out.append({"mesh": mesh, "triangles": per["triangles"], "rays": kind, "query": per.get("query", "closest_hit"),
                     "ray_count": per["ray_count"], "embree": emb["mrays_s"], "per_ray": per["mrays_s"],
-                    "per_ray_h": per["treelet_height"],
-                    "sorted": srt["mrays_s"], "sorted_h": srt["treelet_height"],
+                    "per_ray_h": per["treelet_height"], "per_ray_layout": layout_of(per),
+                    "binary_per_ray": binary and binary["mrays_s"],
+                    "sorted": srt["mrays_s"], "sorted_h": srt["treelet_height"], "sorted_layout": layout_of(srt),
                     "sorted_vs_per_ray": srt["mrays_s"] / per["mrays_s"],
                     "sorted_vs_embree": srt["mrays_s"] / emb["mrays_s"], "per_ray_vs_embree": per["mrays_s"] / emb["mrays_s"],
                     "memory_vs_per_ray": mem_s / mem_p if mem_s and mem_p else None,
@@ -69,27 +82,55 @@ def headline_rows(rows: list[dict]) -> list[dict]:
 
 
 def headline_table(rows: list[dict]) -> str:
-    lines = ["| scene / mesh | triangles | rays | query | Embree Mrays/s | per_ray (best h) | layer_sorted (best h) "
-             "| sorted × per_ray | sorted × Embree | per_ray × Embree | sorted memory × per_ray "
-             "| auto (its choice) | auto × faster of the two |",
-             "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
+    lines = ["| scene / mesh | triangles | rays | query | Embree Mrays/s | per_ray (best K, h) | layer_sorted (best K, h) "
+             "| sorted × per_ray | sorted × Embree | per_ray × Embree | binary per_ray × Embree "
+             "| sorted memory × per_ray | auto (its choice) | auto × faster of the two |",
+             "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
     for h in headline_rows(rows):
+        binary = h["binary_per_ray"] and h["binary_per_ray"] / h["embree"]
         lines.append(f"| {h['mesh']} | {h['triangles']:,} | {h['rays']} ({h['ray_count']:,}) "
-                     f"| {h['query'].replace('_', '-')} | {h['embree']:.2f} | {h['per_ray']:.2f} (h={h['per_ray_h']}) "
-                     f"| {h['sorted']:.2f} (h={h['sorted_h']}) | {h['sorted_vs_per_ray']:.2f} "
-                     f"| {h['sorted_vs_embree']:.2f} | {h['per_ray_vs_embree']:.2f} | {_f(h['memory_vs_per_ray'])} "
+                     f"| {h['query'].replace('_', '-')} | {h['embree']:.2f} | {h['per_ray']:.2f} ({h['per_ray_layout']}) "
+                     f"| {h['sorted']:.2f} ({h['sorted_layout']}) | {h['sorted_vs_per_ray']:.2f} "
+                     f"| {h['sorted_vs_embree']:.2f} | {h['per_ray_vs_embree']:.2f} | {_f(binary)} "
+                     f"| {_f(h['memory_vs_per_ray'])} "
                      f"| {_f(h['auto'])} {h['auto_choice'] or ''} | {_f(h['auto_vs_best_of_two'])} |")
     return "\n".join(lines)
 
 
+def branching_table(rows: list[dict]) -> str:
+    """Per ray set and branching: per_ray against Embree and against the binary per_ray, and
+    layer_sorted against per_ray on the same layout, at each treelet height."""
+    ks = sorted({_k(r) for r in rows if _k(r)})
+    hs = sorted({r["treelet_height"] for r in rows if r["treelet_height"] is not None})
+    lines = ["| scene / mesh | rays | K | per_ray Mrays/s (best h) | × Embree | × binary per_ray | inner/ray "
+             "| box tests/ray | iters/ray | " + " | ".join(f"sorted × per_ray h={h}" for h in hs) + " | BVH MiB |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|" + "---:|" * len(hs) + "---:|"]
+    for (mesh, kind), rs in ray_sets(rows).items():
+        emb, binary = best(rs, "embree"), best(rs, "per_ray", 2)
+        for k in ks:
+            per = best(rs, "per_ray", k)
+            if not per or not emb:
+                continue
+            cells = []
+            for h in hs:
+                s = [r for r in rs if r["mode"] == "layer_sorted" and _k(r) == k and r["treelet_height"] == h]
+                cells.append(_f(s[0].get("ratio_per_ray_same_h")) if s else "–")
+            lines.append(f"| {mesh} | {kind} | {k} | {per['mrays_s']:.2f} (h={per['treelet_height']}) "
+                         f"| {per['mrays_s'] / emb['mrays_s']:.2f} | {_f(binary and per['mrays_s'] / binary['mrays_s'])} "
+                         f"| {_f(per['inner_per_ray'], '.1f')} | {_f(per.get('box_tests_per_ray'), '.1f')} "
+                         f"| {_f(per.get('iterations_per_ray'), '.1f')} | " + " | ".join(cells)
+                         + f" | {_f(per['bvh_bytes'] and per['bvh_bytes'] / MIB, '.1f')} |")
+    return "\n".join(lines)
+
+
 def full_table(rs: list[dict]) -> str:
-    lines = ["| mode | h | Mrays/s | runs min–max | × per_ray | × Embree | inner/ray | leaves/ray | tris/ray "
+    lines = ["| mode | K | h | Mrays/s | runs min–max | × per_ray | × Embree | inner/ray | leaves/ray | tris/ray "
              "| steps | sort s | treelet s | leaf s | other s | BVH MiB | work MiB | peak RSS +MiB |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in rs:
         ts = r.get("time_split_s") or {}
         lines.append(
-            f"| {bt.mode_label(r)} | {_f(r['treelet_height'], 'd')} | {r['mrays_s']:.2f} | {min(r['runs']):.2f}–"
+            f"| {bt.mode_label(r)} | {_f(_k(r), 'd')} | {_f(r['treelet_height'], 'd')} | {r['mrays_s']:.2f} | {min(r['runs']):.2f}–"
             f"{max(r['runs']):.2f} | {r['ratio_per_ray']:.2f} | {r['ratio_embree']:.2f} "
             f"| {_f(r['inner_per_ray'], '.1f')} | {_f(r['leaves_per_ray'])} | {_f(r['tris_per_ray'], '.1f')} "
             f"| {_f(r['steps'], 'd')} | " + " | ".join(_f(ts.get(k), '.3f') for k in STAGES)
@@ -99,15 +140,16 @@ def full_table(rs: list[dict]) -> str:
 
 
 def build_table(rows: list[dict]) -> str:
-    seen, lines = set(), ["| mesh | triangles | treelet h | layerbvh build s | Mtris/s | Embree (Mitsuba scene) build s |",
-                          "|---|---:|---:|---:|---:|---:|"]
+    seen, lines = set(), ["| mesh | triangles | K | treelet h | layerbvh build s (collapse included) | Mtris/s "
+                          "| Embree (Mitsuba scene) build s |",
+                          "|---|---:|---:|---:|---:|---:|---:|"]
     for (mesh, _), rs in ray_sets(rows).items():
         emb = best(rs, "embree")
         for r in rs:
-            key = (mesh, r["treelet_height"])
+            key = (mesh, _k(r), r["treelet_height"])
             if r["mode"] in LAYER_MODES and key not in seen:
                 seen.add(key)
-                lines.append(f"| {mesh} | {r['triangles']:,} | {r['treelet_height']} | {r['build_s']:.2f} "
+                lines.append(f"| {mesh} | {r['triangles']:,} | {_k(r)} | {r['treelet_height']} | {r['build_s']:.2f} "
                              f"| {r['triangles'] / r['build_s'] / 1e6:.2f} | {_f(emb and emb['build_s'])} |")
     return "\n".join(lines)
 
@@ -137,12 +179,14 @@ def plot_heights(rows: list[dict]) -> bytes:
     nrows = (len(sets) + cols - 1) // cols
     fig, axes = plt.subplots(nrows, cols, figsize=(4.2 * cols, 3.3 * nrows), squeeze=False)
     for ax, ((mesh, kind), rs) in zip(axes.flat, sets):
-        for mode, style in (("layer_sorted", "o-"), ("layer_unsorted", "s--"), ("per_ray", "k^-")):
-            pts = sorted((r["treelet_height"], r["mrays_s"]) for r in rs if r["mode"] == mode)
-            if len(pts) > 1:
-                ax.plot(*zip(*pts), style, label=mode)
-            elif pts:  # one layout only: a flat reference line
-                ax.axhline(pts[0][1], ls="-", color="k", label=mode)
+        ks = sorted({_k(r) for r in rs if _k(r)})
+        for k, color in zip(ks, ("C0", "C1", "C2", "C3")):
+            for mode, style in (("layer_sorted", "o-"), ("layer_unsorted", "s--"), ("per_ray", "^:")):
+                pts = sorted((r["treelet_height"], r["mrays_s"]) for r in rs if r["mode"] == mode and _k(r) == k)
+                if len(pts) > 1:
+                    ax.plot(*zip(*pts), style, color=color, label=f"{mode} K={k}")
+                elif pts:  # one layout only: a flat reference line
+                    ax.axhline(pts[0][1], ls="-", color=color, label=f"{mode} K={k}")
         r = best(rs, "embree")
         if r:
             ax.axhline(r["mrays_s"], ls=":", color="grey", label="embree")
@@ -168,7 +212,7 @@ def plot_time_split(rows: list[dict]) -> bytes:
             r = best(rs, mode)
             if r and r.get("time_split_s"):
                 bars.append([r["time_split_s"][k] * 1e3 / (r["ray_count"] / 1e6) for k in STAGES])
-                labels.append(f"{mesh} {kind}\n{mode} h={r['treelet_height']}")
+                labels.append(f"{mesh} {kind}\n{mode} {layout_of(r)}")
     fig, ax = plt.subplots(figsize=(max(6.0, 0.55 * len(bars)), 4.8))
     bottom = [0.0] * len(bars)
     for i, stage in enumerate(STAGES):
@@ -187,7 +231,7 @@ def scaling_series(rows: list[dict]) -> dict:
     """label -> sorted [(triangles, row)]"""
     out = defaultdict(list)
     for r in rows:
-        label = r["mode"] if r["treelet_height"] is None else f"{r['mode']} h={r['treelet_height']}"
+        label = r["mode"] if r["treelet_height"] is None else f"{r['mode']} {layout_of(r)}"
         out[label].append((r["triangles"], r))
     return {k: sorted(v, key=lambda p: p[0]) for k, v in out.items()}
 
@@ -279,11 +323,19 @@ def document(bench: list[dict], scaling: dict | None, fig_dir: str, converge: li
     for d in bench + ([scaling] if scaling else []):
         parts += [f"- `{d['command']}`", f"  ({machine_line(d)})"]
     parts += ["", "## Headline", "",
-              "Best treelet height of `layer_sorted` per ray set, against the best layout of `per_ray` (the same "
-              "BVH, one kernel, a per-ray stack) and Embree. `auto` runs on the h=4 layout (the integrator's "
+              "Best layout (branching K, treelet height h) of `layer_sorted` per ray set, against the best layout of "
+              "`per_ray` (the same BVH, one kernel, a per-ray stack), the binary `per_ray` (K=2, the paper's tree) and "
+              "Embree. `auto` runs on the h=4 layout (the integrator's "
               "default) and is compared with the faster (by median) of `per_ray` and `layer_sorted` on that layout: the median over rounds of auto's throughput over that mode's in the same round (the three run back to back).", "",
               headline_table(rows), "",
               f"![throughput against treelet height]({fig_dir}/throughput_vs_height.png)", "",
+              "## Branching", "",
+              "Per ray set and branching K (children per node: 2 is the binary BVH, 4 and 8 are collapsed from it "
+              "with leaves of 2): `per_ray` at its best height against Embree and the binary `per_ray`; the work per "
+              "ray (inner-node visits are the dependent node loads; each visit tests K boxes; loop iterations); and "
+              "`layer_sorted` against `per_ray` on the same layout at each treelet height (h counts binary levels: "
+              "a treelet holds ceil(h / log2 K) levels of the K-wide tree).", "",
+              branching_table(rows), "",
               "## Time per stage", "",
               "Sort: counting sort and permutation between wavefront steps; treelet / leaf: the traversal kernel's "
               "time, split by the share of loop iterations spent on triangles (an estimate); other: host work "
