@@ -43,9 +43,21 @@ class IRCount:
         return self.loop - self.triangle_branch - self.node_branch - self.leaf_branch
 
 
+_HELPER = re.compile(r"^internal fastcc [^@]*@([A-Za-z_0-9]+)\(")
+_CALL = re.compile(r"call fastcc [^@]*@([A-Za-z_0-9]+)\(")
+
+
 def count_ir(ir: str) -> IRCount:
-    """IRCount of the walk kernel: the kernel whose loop body is the largest in `ir`."""
-    kernels = [k for k in ir.split("\ndefine ") if "_body:" in k]
+    """IRCount of the walk kernel: the kernel whose loop body is the largest in `ir`. A call of
+    one of Dr.Jit's internal helpers (the packet gather `gather_8xf32`: 16 loads, their merge
+    and a transpose) counts as the helper's own instructions, since it runs them inline."""
+    parts = ir.split("\ndefine ")
+    helpers = {}
+    for part in parts:
+        m = _HELPER.match(part)
+        if m:
+            helpers[m.group(1)] = sum(0 if _NOT_WORK.search(line) else 1 for line in part.splitlines()[1:])
+    kernels = [k for k in parts if "_body:" in k]
     if not kernels:
         raise ValueError("no kernel with a loop in the IR")
     best = None
@@ -61,7 +73,8 @@ def count_ir(ir: str) -> IRCount:
                 open_at.setdefault(label_id, i)
             elif kind == "end" and label_id in open_at:
                 spans[label_id] = (open_at[label_id], i)
-        work = np.array([0 if _NOT_WORK.search(line) else 1 for line in lines])
+        work = np.array([0 if _NOT_WORK.search(line) else
+                         1 + helpers.get((_CALL.search(line) or [None, None])[1], 0) for line in lines])
         loops = [lid for lid, (a, b) in spans.items() if any(lines[j].startswith(f"l_{lid}_body:") for j in range(a, b))]
         if not loops:
             continue
