@@ -340,16 +340,16 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray | None, faces: np.ndarray
     # plane lies outside the true box and can hit nothing in it.
     lo_out = np.nextafter(b.lo, np.float32(-np.inf))
     hi_out = np.nextafter(b.hi, np.float32(np.inf))
+    child = kids[order]  # (N, K)
+    real = child >= 0
+    empty = np.float32(EMPTY_BOX)
     for k in range(branching):
-        child = kids[order, k]
-        real = child >= 0
-        c = np.maximum(child, 0)
-        for a in range(3):
-            rec[:, fmt.lo[k][a]] = np.where(real, lo_out[c, a], np.float32(EMPTY_BOX[a]))
-            rec[:, fmt.hi[k][a]] = np.where(real, hi_out[c, a], np.float32(EMPTY_BOX[a]))
-        bits[:, fmt.link[k]] = np.where(real, link(c, order), EMPTY_LINK)
+        c, r = np.maximum(child[:, k], 0), real[:, k:k + 1]
+        rec[:, list(fmt.lo[k])] = np.where(r, lo_out[c], empty)
+        rec[:, list(fmt.hi[k])] = np.where(r, hi_out[c], empty)
+        bits[:, fmt.link[k]] = np.where(real[:, k], link(c, order), EMPTY_LINK)
     rec[:, fmt.depth] = depth[order]
-    rec[:, fmt.children] = (kids[order] >= 0).sum(1)
+    rec[:, fmt.children] = real.sum(1)
 
     tri_ids = b.perm[_ranges(b.start[leaf_order], counts)]
     tri = np.zeros((0 if over_instances else len(tri_ids), TRI_FLOATS), np.float32)

@@ -11,10 +11,12 @@ LAYERBVH=.venv/bin/layerbvh
 SWEEP_ARGS=${SWEEP_ARGS:-}
 $PY scripts/gen_stress.py spheres --triangles 1000000 --out out/stress_spheres_1m --force
 # Generated meshes (the procedural sphere soup and the bunny are meshes, not scenes): one process.
-$PY scripts/bench_traversal.py --heights 4,8,12 --runs 5 --json docs/bench/bench_meshes.json
+$PY scripts/bench_traversal.py --branchings 2,4,8 --heights 4,8 --runs 5 --json docs/bench/bench_meshes.json
+# What one walk-kernel iteration costs per branching (IR, packet-iterations, ns per packet-iteration).
+$PY scripts/bench_kernel.py --rays 500000 --runs 9 --json docs/bench/kernel_cost.json
 # Rays recorded from two scenes at 512x512, 4 spp (cached per scene): one point per scene and ray kind.
 $LAYERBVH sweep scenes/paper_mix.xml out/stress_spheres_1m/scene.xml --job bench \
-    --rays camera,first_bounce_diffuse,diffuse,glossy,specular,shadow --treelet-heights 4,8,12 --runs 5 \
+    --rays camera,first_bounce_diffuse,diffuse,glossy,specular,shadow --treelet-heights 4,8 --branchings 2,4,8 --runs 5 \
     --res 512 512 --spp 4 --rerun --out out/sweep_bench $SWEEP_ARGS
 cp out/sweep_bench/bench.json docs/bench/bench.json
 $PY scripts/bench_scaling.py --heights 4,8 --json docs/bench/scaling.json

@@ -56,6 +56,7 @@ def test_bad_recording_is_named(tmp_path):
 def bench_json(recording, tmp_path_factory):
     out = tmp_path_factory.mktemp("bench") / "bench.json"
     assert bench_traversal.main(["--rays-file", str(recording), "--procedural-tris", "0", "--heights", "2,5",
+                                 "--branchings", "2,4",
                                  "--rays", "3000", "--runs", "1", "--kinds", "camera,first_bounce_diffuse,shadow",
                                  "--json", str(out)]) == 0
     return out
@@ -77,8 +78,14 @@ def test_bench_on_recorded_rays(bench_json):
             # 1e-4 of the rays (tests/test_engine_hits.py), here at least one ray. Measured: 0 of
             # ~15,000 rays over six recordings (seeds 0-5) of these kinds.
             assert r["prim_mismatch_vs_per_ray"] <= max(1, math.ceil(1e-4 * r["ray_count"])), r
-    by_mode = {(r["rays"], r["mode"], r["treelet_height"]) for r in rows}
-    assert ("shadow", "layer_sorted", 5) in by_mode and ("camera", "per_ray", 2) in by_mode
+    by_mode = {(r["rays"], r["mode"], r["branching"], r["treelet_height"]) for r in rows}
+    assert ("shadow", "layer_sorted", 4, 5) in by_mode and ("camera", "per_ray", 2, 2) in by_mode
+    # Work shown both ways: the 4-wide tree visits fewer nodes in fewer iterations, with more box tests.
+    for kind in ("camera", "first_bounce_diffuse"):
+        per = {r["branching"]: r for r in rows if r["rays"] == kind and r["mode"] == "per_ray" and r["treelet_height"] == 5}
+        assert per[4]["inner_per_ray"] < 0.7 * per[2]["inner_per_ray"], kind
+        assert per[4]["iterations_per_ray"] < per[2]["iterations_per_ray"], kind
+        assert per[4]["box_tests_per_ray"] > per[2]["box_tests_per_ray"] * 0.9, kind
 
 
 def test_report_and_scaling(bench_json, tmp_path):
@@ -95,6 +102,7 @@ def test_report_and_scaling(bench_json, tmp_path):
     text = md.read_text()
     assert "## Headline" in text and "| mix | " in text and "## Scaling with scene size" in text
     assert "bench_traversal.py" in text and "bench_scaling.py" in text, "the commands are quoted"
+    assert "## Branching" in text and "| mix | camera | 4 |" in text, "a row per branching"
     head = report.headline_rows(json.loads(bench_json.read_text())["results"])
     assert {h["rays"] for h in head} == {"camera", "first_bounce_diffuse", "shadow"}
     for h in head:
@@ -121,3 +129,21 @@ def test_instancing_benchmark_reports_work_per_level(tmp_path):
         assert 0 < inst["top_inner_nodes"] < inst["inner_nodes"] and inst["instance_entries"] > 0.1
         assert flat["top_inner_nodes"] == flat["instance_entries"] == 0
         assert inst["triangles"] > 0 and flat["triangles"] > 0
+
+
+def test_kernel_cost_counts_the_walk_loop_per_branching(tmp_path):
+    """scripts/bench_kernel.py on a small mesh: the wide node branch is larger than the binary's
+    (more boxes, larger gathers), and the wide tree needs fewer iterations per ray."""
+    from layerbvh_mitsuba.bench import kernel_cost
+    out = tmp_path / "kc.json"
+    assert kernel_cost.main(["--procedural-tris", "20000", "--rays", "4000", "--runs", "1", "--branchings", "2,4",
+                             "--json", str(out)]) == 0
+    rows = {(r["rays"], r["branching"]): r for r in json.loads(out.read_text())["results"]}
+    for kind in ("incoherent", "camera"):
+        b, w = rows[(kind, 2)], rows[(kind, 4)]
+        assert w["ir"]["node_branch"] > 1.5 * b["ir"]["node_branch"] > 0
+        assert b["ir"]["triangle_branch"] == w["ir"]["triangle_branch"] > 0, "the same triangle test"
+        assert w["iterations_per_ray"] < b["iterations_per_ray"]
+        assert 0 < w["simd_use"] <= 1 and w["ns_per_packet_iteration"] > 0
+    with pytest.raises(SystemExit):
+        kernel_cost.main(["--branchings", "3"])

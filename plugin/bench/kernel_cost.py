@@ -141,9 +141,9 @@ def packet_iterations(iters: np.ndarray, lanes: int) -> int:
 class _Setup:
     """One branching's BVH, its rays on the device, IR and counted work (before any timing)."""
 
-    def __init__(self, v, f, o, d, branching: int, height: int):
+    def __init__(self, v, f, o, d, branching: int, height: int, leaf_size: int | None = None):
         self.branching = branching
-        self.bvh = bvh = layerbvh.build(v, f, branching=branching, treelet_height=height)
+        self.bvh = bvh = layerbvh.build(v, f, branching=branching, treelet_height=height, leaf_size=leaf_size)
         m = bvh.m
         self.o = m.Array3f(*(m.Float(np.ascontiguousarray(o[:, c])) for c in range(3)))
         self.d = m.Array3f(*(m.Float(np.ascontiguousarray(d[:, c])) for c in range(3)))
@@ -162,10 +162,11 @@ class _Setup:
         self.times.append(time.perf_counter() - t0)
 
 
-def measure(v, f, o, d, branchings: list[int], kind: str, runs: int, height: int) -> list[KernelCost]:
+def measure(v, f, o, d, branchings: list[int], kind: str, runs: int, height: int,
+            leaf_size: int | None = None) -> list[KernelCost]:
     """KernelCost of each branching on the same rays; the timed runs go round-robin over the
     branchings (one of each per round), so drifts of a shared machine hit all alike."""
-    setups = [_Setup(v, f, o, d, k, height) for k in branchings]
+    setups = [_Setup(v, f, o, d, k, height, leaf_size) for k in branchings]
     for r in range(runs):
         for s in setups[r % len(setups):] + setups[:r % len(setups)]:
             s.run()
@@ -195,6 +196,8 @@ def main(argv=None) -> int:
     p.add_argument("--rays", type=int, default=1_000_000)
     p.add_argument("--branchings", default=",".join(map(str, layerbvh.BRANCHINGS)))
     p.add_argument("--height", type=int, default=layerbvh.DEFAULT_TREELET_HEIGHT)
+    p.add_argument("--leaf-size", type=int, help="triangles per leaf for every branching (default: each "
+                                                   "branching's own, layerbvh.default_leaf_size)")
     p.add_argument("--runs", type=int, default=5)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", metavar="OUT")
@@ -223,7 +226,7 @@ def main(argv=None) -> int:
     rows = []
     for kind, gen, seed in (("incoherent", meshes.incoherent_rays, 2), ("camera", meshes.camera_rays, 1)):
         o, d = gen(v, args.rays, seed=args.seed + seed)
-        for c in measure(v, f, o, d, branchings, kind, args.runs, args.height):
+        for c in measure(v, f, o, d, branchings, kind, args.runs, args.height, args.leaf_size):
             k = c.branching
             rows.append(asdict(c))
             print(f"| {kind} | {k} | {c.mrays_s:.2f} | {c.speedup_vs_first:.2f} | {c.ir['loop']} | {c.ir['always']} | {c.ir['node_branch']} "
