@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import os
 import re
@@ -97,22 +99,33 @@ def count_ir(ir: str) -> IRCount:
 
 
 def capture_ir(fn) -> str:
-    """Run `fn` with Dr.Jit printing the IR of every kernel it compiles (to file descriptor 1),
-    and return that text."""
+    """Run `fn` with Dr.Jit printing the IR of every kernel it compiles (on file descriptors 1
+    and 2, whichever its log goes to), and return that text."""
+    import ctypes
+    libc = ctypes.CDLL(None)
     sys.stdout.flush()
-    saved = os.dup(1)
-    with tempfile.TemporaryFile("w+") as tmp:
+    sys.stderr.flush()
+    # Dr.Jit prints the IR of a kernel it compiles or loads from its disk cache, not of one it
+    # already holds in memory (a kernel this process ran before): drop those first.
+    dr.flush_kernel_cache()
+    saved = [os.dup(1), os.dup(2)]
+    # Where the log lands depends on who set Dr.Jit up: the process's descriptors, or Python's
+    # sys.stdout / sys.stderr (replaced by pytest's capture, for one). Both are caught.
+    py = io.StringIO()
+    with tempfile.TemporaryFile("w+") as tmp, contextlib.redirect_stdout(py), contextlib.redirect_stderr(py):
         os.dup2(tmp.fileno(), 1)
+        os.dup2(tmp.fileno(), 2)
         dr.set_flag(dr.JitFlag.PrintIR, True)
         try:
             fn()
         finally:
             dr.set_flag(dr.JitFlag.PrintIR, False)
-            sys.stdout.flush()
-            os.dup2(saved, 1)
-            os.close(saved)
+            libc.fflush(None)  # the C library's buffers, before the descriptors go back
+            for fd, old in zip((1, 2), saved):
+                os.dup2(old, fd)
+                os.close(old)
         tmp.seek(0)
-        return tmp.read()
+        return tmp.read() + py.getvalue()
 
 
 @dataclass
