@@ -42,7 +42,7 @@ def markdown(results, command: str, scale: float, seconds: float, robust=()) -> 
         f"{max(8, int(round(16 * scale ** 0.5)))}² pixels. Each case is also a test in "
         "`tests/test_stability.py` (at scale 1).", "",
         f"**{len(results) - len(failed)} of {len(results)} cases pass**" + (f"; failing: {', '.join(failed)}." if failed else "."), "",
-        "How to read it. *Ray level*: our closest hits (all three traversal modes, which must agree bit for bit) "
+        "How to read it. *Ray level*: our closest hits (all three traversal modes on every branching, 2, 4 and 8 children per node, which must agree bit for bit) "
         "against Embree via Mitsuba, default and robust (`embree_use_robust_intersections`). A disagreement is a "
         "ray where one side hits and the other misses, or the two hit different triangles at different distances "
         "(rays that hit two triangles at the same distance, shared edges and coplanar faces, are ties where either "
