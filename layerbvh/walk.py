@@ -200,10 +200,12 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
                     active &= False
         slot = m.UInt32(cap)
         if wide:
-            for j in range(n_slots):
-                slot = dr.select(m.UInt32(j) < n_push, nl + n_push - (j + 1), cap)
-                loc_link[slot] = push_links[j]
-                loc_t[slot] = push_ts[j]
+            if n_push > 0:  # a packet where no lane pushes skips the K - 1 writes (lanes that
+                # do not take this branch have n_push = 0 and would write the spare slot anyway)
+                for j in range(n_slots):
+                    slot = dr.select(m.UInt32(j) < n_push, nl + n_push - (j + 1), cap)
+                    loc_link[slot] = push_links[j]
+                    loc_t[slot] = push_ts[j]
             nl += n_push
         else:
             slot = dr.select(push, nl, cap)

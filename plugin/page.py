@@ -301,7 +301,8 @@ def render_page(rep: dict, stock: np.ndarray, ours: np.ndarray, maps: dict, heat
     ours = rep.get("ours", {})
     run = (f"{rep.get('resolution', [w, h])[0]}×{rep.get('resolution', [w, h])[1]}, {rep.get('spp')} spp, seed "
            f"{rep.get('seed')}, variant {rep.get('variant')}, traversal {ours.get('traversal')} "
-           f"(treelet height {ours.get('treelet_height')}, {ours.get('loop', '')} loop), path settings "
+           f"({ours.get('branching', 2)} children per node, treelet height {ours.get('treelet_height')}, "
+           f"{ours.get('loop', '')} loop), path settings "
            f"{rep.get('integrator')}")
     links = " · ".join(f'<a href="{f}">{f}</a>' for f in ("stock.exr", "ours.exr", "report.json", "stock.png",
                                                            "ours.png", "diff.png", "flip.png"))
