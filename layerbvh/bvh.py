@@ -17,8 +17,9 @@ from .state import MISS, Results
 from .stats import BVHStats, TraceStats
 from .wavefront import MODES, TAIL_FRACTION, TAIL_RAYS, trace as _trace, trace_inline
 
-# Rays traced per batch. The layer modes' work memory is about batch x (tree depth x 8 B of
-# entry stack + 2 x 36 B of ray state + 32 B ray record + 40 B in/out); 1M rays, depth 40: ~500 MB.
+# Rays traced per batch. The layer modes' work memory is about batch x ((K - 1) x tree depth x 8 B
+# of entry stack + 2 x 36 B of ray state + 32 B ray record + 40 B in/out); 1M rays, binary depth 40
+# or 4-wide depth 20: ~500-620 MB.
 BATCH_RAYS = 1 << 20
 TRACE_MODES = MODES + (AUTO,)
 

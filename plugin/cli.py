@@ -131,7 +131,8 @@ def _check_memory(scene, spp: int, integ) -> None:
     work = 0
     if tracer is not None:
         st = tracer.bvh.stats
-        work = st.total_bytes + min(int(size[0]) * int(size[1]) * spp, tracer.bvh.batch_rays) * (st.depth * 8 + 150)
+        rays = min(int(size[0]) * int(size[1]) * spp, tracer.bvh.batch_rays)
+        work = st.total_bytes + rays * ((st.branching - 1) * st.depth * 8 + 150)  # entry stacks + ray state
     check_memory(int(size[0]), int(size[1]), spp, "megakernel" if integ.megakernel(tracer) else "wavefront", work)
 
 
