@@ -317,20 +317,23 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray | None, faces: np.ndarray
     is_leaf = np.zeros(m, np.bool_)
     is_leaf[leaf_bfs] = True
 
-    def leaf_of(child):
-        if over_instances:
-            one = b.perm[np.minimum(b.start[child], max(len(b.perm) - 1, 0))].astype(np.uint32)
-            return np.where(b.count[child] == 1, instance_link(one), leaf_link(np.uint32(0), np.uint32(0)))
-        return leaf_link(leaf_first[child].astype(np.uint32), b.count[child].astype(np.uint32))
-
-    def link(child, par):
-        out = np.where(is_leaf[child], leaf_of(child),
-                       np.where(tre[child] != tre[par], EXIT_BIT | tre[child].astype(np.uint32),
-                                new_idx[child].astype(np.uint32)))
-        return out.astype(np.uint32)
+    # The link each node of the wide tree is reached by, from its one parent.
+    in_tree = np.zeros(m, np.bool_)
+    in_tree[bfs[1:]] = True
+    in_tree[leaf_bfs] = True
+    nodes_in = np.nonzero(in_tree)[0]
+    if over_instances:
+        one = b.perm[np.minimum(b.start[nodes_in], max(len(b.perm) - 1, 0))].astype(np.uint32)
+        as_leaf = np.where(b.count[nodes_in] == 1, instance_link(one), leaf_link(np.uint32(0), np.uint32(0)))
+    else:
+        as_leaf = leaf_link(leaf_first[nodes_in].astype(np.uint32), b.count[nodes_in].astype(np.uint32))
+    child_link = np.zeros(m, np.uint32)
+    child_link[nodes_in] = np.where(
+        is_leaf[nodes_in], as_leaf,
+        np.where(tre[nodes_in] != tre[parent[nodes_in]], EXIT_BIT | tre[nodes_in].astype(np.uint32),
+                 new_idx[nodes_in].astype(np.uint32))).astype(np.uint32)
 
     rec = np.zeros((len(order), fmt.floats), np.float32)
-    bits = rec.view(np.uint32)
     # Child boxes are stored one float step larger on every side. A ray with a zero direction
     # component that lies exactly in a box's face plane gets (hi - o) * inv = 0 there (inv is
     # finite, geometry.MIN_RCP_INPUT), an empty slab interval, and would miss the closed box
@@ -340,14 +343,9 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray | None, faces: np.ndarray
     # plane lies outside the true box and can hit nothing in it.
     lo_out = np.nextafter(b.lo, np.float32(-np.inf))
     hi_out = np.nextafter(b.hi, np.float32(np.inf))
-    child = kids[order]  # (N, K)
-    real = child >= 0
-    empty = np.float32(EMPTY_BOX)
-    for k in range(branching):
-        c, r = np.maximum(child[:, k], 0), real[:, k:k + 1]
-        rec[:, list(fmt.lo[k])] = np.where(r, lo_out[c], empty)
-        rec[:, list(fmt.hi[k])] = np.where(r, hi_out[c], empty)
-        bits[:, fmt.link[k]] = np.where(real[:, k], link(c, order), EMPTY_LINK)
+    _node_records(order, kids, lo_out, hi_out, child_link, np.array(fmt.lo), np.array(fmt.hi), np.array(fmt.link),
+                  np.float32(EMPTY_BOX), EMPTY_LINK, rec, rec.view(np.uint32))
+    real = kids[order] >= 0
     rec[:, fmt.depth] = depth[order]
     rec[:, fmt.children] = real.sum(1)
 
@@ -368,6 +366,21 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray | None, faces: np.ndarray
         height=height,
         branching=branching,
     )
+
+
+@numba.njit(cache=True)
+def _node_records(order, kids, lo, hi, child_link, lo_slot, hi_slot, link_slot, empty_box, empty_link, out, out_u32):
+    """Fill the child slots of the node records (node_format: slots lo_slot[k, axis],
+    hi_slot[k, axis], link_slot[k]) of the wide nodes `order`, from their children `kids`
+    (binary ids, -1: empty), the children's boxes and the links they are reached by."""
+    for i in range(len(order)):
+        n = order[i]
+        for k in range(kids.shape[1]):
+            c = kids[n, k]
+            for a in range(3):
+                out[i, lo_slot[k, a]] = lo[c, a] if c >= 0 else empty_box[a]
+                out[i, hi_slot[k, a]] = hi[c, a] if c >= 0 else empty_box[a]
+            out_u32[i, link_slot[k]] = child_link[c] if c >= 0 else empty_link
 
 
 @numba.njit(cache=True)
@@ -516,6 +529,8 @@ def load_builder_kernels() -> float:
     t0 = time.perf_counter()
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32)
     f = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3], [0, 1, 2], [0, 2, 3]], np.int64)
-    to_layer_layout(build_binned_sah(*triangle_bounds(v, f), 1), v, f, 1)
+    tiny = build_binned_sah(*triangle_bounds(v, f), 1)
+    to_layer_layout(tiny, v, f, 1)
+    to_layer_layout(tiny, v, f, 1, 4)  # the collapse's kernel too
     _builder_kernels_loaded = True
     return time.perf_counter() - t0
