@@ -22,7 +22,10 @@ class WideTree:
 
     kids: np.ndarray
     is_node: np.ndarray
-    branching: int
+
+    @property
+    def branching(self) -> int:
+        return self.kids.shape[1]
 
 
 def surface_areas(b: BinaryBVH) -> np.ndarray:
@@ -40,9 +43,9 @@ def collapse(b: BinaryBVH, branching: int) -> WideTree:
         inner = b.left >= 0
         kids = np.full((len(b.left), 2), -1, np.int64)
         kids[inner, 0], kids[inner, 1] = b.left[inner], b.left[inner] + 1
-        return WideTree(kids=kids, is_node=inner.copy(), branching=2)
+        return WideTree(kids=kids, is_node=inner.copy())
     kids, is_node = _collapse(b.left, surface_areas(b), branching)
-    return WideTree(kids=kids, is_node=is_node, branching=branching)
+    return WideTree(kids=kids, is_node=is_node)
 
 
 @numba.njit(cache=True)

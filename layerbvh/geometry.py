@@ -86,6 +86,18 @@ def pick(v, k):
     return dr.select(k == 0, v[0], dr.select(k == 1, v[1], v[2]))
 
 
+def _slab(m, rec, lo, hi, ray: Ray, tf):
+    """(entry, exit) distances of `ray` through the box whose bounds are rec[lo[axis]] and
+    rec[hi[axis]], the exit distance starting from `tf` (the one slab test of every branching)."""
+    tn, tf = m.Float(0.0), m.Float(tf)
+    for c in range(3):
+        t0 = (rec[lo[c]] - ray.o[c]) * ray.inv[c]
+        t1 = (rec[hi[c]] - ray.o[c]) * ray.inv[c]
+        tn = dr.maximum(tn, dr.minimum(t0, t1))
+        tf = dr.minimum(tf, dr.maximum(t0, t1))
+    return tn, tf
+
+
 def hit_children(m, nodes, node, ray: Ray, t_best, active):
     """Slab-test both child boxes of `node`: (hit_left, hit_right, t_left, t_right, link_left, link_right).
 
@@ -96,13 +108,7 @@ def hit_children(m, nodes, node, ray: Ray, t_best, active):
     out = []
     for side in (0, 1):
         lo, hi = NODE_BOX_LO[side], NODE_BOX_HI[side]
-        tn = m.Float(0.0)
-        tf = m.Float(dr.inf)
-        for c in range(3):
-            t0 = (rec[lo + c] - ray.o[c]) * ray.inv[c]
-            t1 = (rec[hi + c] - ray.o[c]) * ray.inv[c]
-            tn = dr.maximum(tn, dr.minimum(t0, t1))
-            tf = dr.minimum(tf, dr.maximum(t0, t1))
+        tn, tf = _slab(m, rec, range(lo, lo + 3), range(hi, hi + 3), ray, dr.inf)
         hit = active & (tn <= tf * FAR_SCALE) & (tn <= t_best * FAR_SCALE)
         out.append((hit, tn))
     links = [dr.reinterpret_array(m.UInt32, rec[NODE_LINK[side]]) for side in (0, 1)]
@@ -118,13 +124,8 @@ def hit_children_wide(m, nodes, node, ray: Ray, t_best, active, fmt: NodeFormat)
     rec = dr.gather(m.ArrayXf, nodes, node, active, shape=(fmt.floats, dr.width(node)))
     hits, ts, links = [], [], []
     for c in range(fmt.branching):
-        tn = m.Float(0.0)
-        tf = m.Float(t_best)  # min(tf, t_best) * FAR_SCALE rounds as the two tests of hit_children
-        for a in range(3):
-            t0 = (rec[fmt.lo[c][a]] - ray.o[a]) * ray.inv[a]
-            t1 = (rec[fmt.hi[c][a]] - ray.o[a]) * ray.inv[a]
-            tn = dr.maximum(tn, dr.minimum(t0, t1))
-            tf = dr.minimum(tf, dr.maximum(t0, t1))
+        # far distance from t_best: min(tf, t_best) * FAR_SCALE rounds as the two tests of hit_children
+        tn, tf = _slab(m, rec, fmt.lo[c], fmt.hi[c], ray, t_best)
         # (no `active &`: the caller runs this inside its node branch and reads only its lanes)
         hits.append(tn <= tf * FAR_SCALE)
         ts.append(tn)

@@ -292,8 +292,8 @@ def to_layer_layout(b: BinaryBVH, vertices: np.ndarray | None, faces: np.ndarray
     leaf_bfs = np.concatenate(leaf_levels)
     # Treelet roots are the inner nodes at depths 0, L, 2L, ... (L levels per treelet);
     # numbering them in breadth-first order numbers treelets breadth-first, and a stable sort by
-    # treelet keeps each treelet's nodes breadth-first. Leaves belong to their parent's treelet (a leaf at a treelet boundary
-    # stays with its parent).
+    # treelet keeps each treelet's nodes breadth-first. Leaves belong to their parent's treelet
+    # (a leaf at a treelet boundary stays with its parent).
     is_root = np.zeros(m, np.bool_)
     is_root[bfs] = depth[bfs] % treelet_levels(height, branching) == 0
     root_rank = np.full(m, -1, np.int64)

@@ -31,8 +31,8 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
     the leaf it is in; take the next entry from its stack (culled when farther than the
     closest hit so far); test both children of the node it is at, going on with the nearer and
     pushing the farther (a wide node: all its children, on with the nearest, the other hit ones
-    pushed far to near, so the nearest of them is popped first); enter the leaf it reached (a leaf link carries its triangle range, so
-    the next iteration tests the first triangle). So a node whose children both miss costs no
+    pushed far to near, so the nearest of them is popped first); enter the leaf it reached (a
+    leaf link carries its triangle range, so the next iteration tests the first triangle). So a node whose children both miss costs no
     extra iteration to pop, and no iteration reads a leaf record. Stack memory is touched only
     on a push or a pop.
 

@@ -79,20 +79,20 @@ def test_empty_mesh_misses_everything():
     assert not bvh.occluded(np.zeros((4, 3), np.float32), np.ones((4, 3), np.float32), 10.0).occluded.any()
 
 
-def test_check_layout_catches_corruption(bunny):
+@pytest.mark.parametrize("branching", [2, 4])
+def test_check_layout_catches_corruption(bunny, branching):
     v, f = bunny
-    bvh = layerbvh.build(v, f, branching=2, treelet_height=3)
-    lay = bvh.layout
-    links = lay.links()
+    lay = layerbvh.build(v, f, branching=branching, treelet_height=3).layout
+    links, rec, fmt = lay.links(), lay.records(), lay.format
     inner = np.nonzero((links[:, 0] & (LEAF_BIT | EXIT_BIT)) == 0)[0]
+    assert len(inner) >= 2
     saved = links[inner[0], 0]
     links[inner[0], 0] = links[inner[1], 0]  # one node referenced twice, another never
     with pytest.raises(AssertionError, match="referenced"):
         check_layout(lay, len(f))
     links[inner[0], 0] = saved
     check_layout(lay, len(f))
-    rec = lay.nodes.reshape(-1, NODE_FLOATS)
-    rec[0, 3:6] = rec[0, 0:3]  # shrink the root's left box to a point
+    rec[0, list(fmt.hi[0])] = rec[0, list(fmt.lo[0])]  # shrink the root's first child box to a point
     with pytest.raises(AssertionError, match="box"):
         check_layout(lay, len(f))
 

@@ -8,7 +8,7 @@ import pytest
 
 import layerbvh
 from layerbvh.collapse import collapse, surface_areas
-from layerbvh.layout import EMPTY_LINK, EXIT_BIT, LEAF_BIT, check_layout
+from layerbvh.layout import EMPTY_LINK, check_layout
 from layerbvh.walk import SORT_NETWORKS
 from layerbvh_mitsuba.bench import meshes
 
@@ -82,10 +82,11 @@ def test_wide_layout_invariants(bunny, branching, height):
     assert lay.leaf_count == bl.leaf_count and len(lay.tris) == len(bl.tris)
 
 
-def test_check_layout_catches_wide_corruption(bunny):
+def test_check_layout_catches_a_used_empty_slot(bunny):
+    """(References and boxes on a wide tree: test_engine_layout.test_check_layout_catches_corruption.)"""
     v, f = bunny
     lay = layerbvh.build(v, f, treelet_height=8, branching=4).layout
-    links, rec, fmt = lay.links(), lay.records(), lay.format
+    links = lay.links()
     part = np.nonzero(lay.children() < 4)[0]
     assert len(part), "the bunny's BVH4 should have a node with an empty slot"
     n = part[0]
@@ -94,15 +95,6 @@ def test_check_layout_catches_wide_corruption(bunny):
         check_layout(lay, len(f))
     links[n, 3] = EMPTY_LINK
     check_layout(lay, len(f))
-    inner = np.nonzero((links[:, 1] & (LEAF_BIT | EXIT_BIT)) == 0)[0]
-    saved = links[inner[0], 1]
-    links[inner[0], 1] = links[inner[1], 1]  # one node referenced twice, another never
-    with pytest.raises(AssertionError, match="referenced"):
-        check_layout(lay, len(f))
-    links[inner[0], 1] = saved
-    rec[0, list(fmt.hi[1])] = rec[0, list(fmt.lo[1])]  # shrink a child box of the root to a point
-    with pytest.raises(AssertionError, match="box"):
-        check_layout(lay, len(f))
 
 
 @pytest.mark.parametrize("branching", WIDE)

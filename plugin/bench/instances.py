@@ -27,16 +27,9 @@ import layerbvh
 from .. import atomic, embree
 from ..render import use_variant
 from . import meshes
+from .traversal import timed
 
 MIB = 1 << 20
-
-
-def _timed(fn) -> float:
-    dr.sync_thread()
-    t0 = time.perf_counter()
-    fn()
-    dr.sync_thread()
-    return time.perf_counter() - t0
 
 
 def _camera_rays(origin, lo, hi, n: int, seed: int):
@@ -89,10 +82,9 @@ def main(argv=None) -> int:
     rows, work = [], []
     for kind, (o, d) in ray_sets.items():
         m = builds["instanced"].m
-        o_dev = m.Array3f(*(m.Float(np.ascontiguousarray(o[:, c])) for c in range(3)))
-        d_dev = m.Array3f(*(m.Float(np.ascontiguousarray(d[:, c])) for c in range(3)))
+        o_dev, d_dev = meshes.device_rays(m, o, d)
         ray = embree.rays(o, d)
-        dr.eval(o_dev, d_dev, ray)
+        dr.eval(ray)
         out = {}
 
         def ours(name, mode):
@@ -118,7 +110,7 @@ def main(argv=None) -> int:
         keys = list(configs)
         for r in range(args.runs):
             for k in keys[r % len(keys):] + keys[:r % len(keys)]:
-                times[k].append(_timed(configs[k]))
+                times[k].append(timed(configs[k])[0])
         ref = out[("instanced", "per_ray")]
         hit_frac = float(np.mean(ref.prim.numpy() != layerbvh.MISS))
         for (name, mode), ts in times.items():

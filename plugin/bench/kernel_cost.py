@@ -10,7 +10,6 @@ import re
 import shlex
 import sys
 import tempfile
-import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -21,6 +20,7 @@ import layerbvh
 from .. import atomic
 from ..repo import SCENES
 from . import meshes
+from .traversal import timed
 
 # Lines of Dr.Jit's LLVM IR that are not work: labels, branches, and the broadcast of a
 # constant (insertelement into undef + shufflevector), which LLVM folds into the operand.
@@ -157,22 +157,17 @@ class _Setup:
     def __init__(self, v, f, o, d, branching: int, height: int, leaf_size: int | None = None):
         self.branching = branching
         self.bvh = bvh = layerbvh.build(v, f, branching=branching, treelet_height=height, leaf_size=leaf_size)
-        m = bvh.m
-        self.o = m.Array3f(*(m.Float(np.ascontiguousarray(o[:, c])) for c in range(3)))
-        self.d = m.Array3f(*(m.Float(np.ascontiguousarray(d[:, c])) for c in range(3)))
-        dr.eval(self.o, self.d)
+        self.o, self.d = meshes.device_rays(bvh.m, o, d)
         self.ir = count_ir(capture_ir(lambda: dr.eval(bvh.trace(self.o, self.d, mode="per_ray", stats=False).t)))
         self.counted = bvh.trace(self.o, self.d, mode="per_ray", stats=True)
         self.iters = np.asarray(self.counted.work["iterations"].numpy(), np.int64)
         self.times = []
 
     def run(self) -> None:
-        dr.sync_thread()
-        t0 = time.perf_counter()
-        h = self.bvh.trace(self.o, self.d, mode="per_ray", stats=False)
-        dr.eval(h.t, h.prim)
-        dr.sync_thread()
-        self.times.append(time.perf_counter() - t0)
+        def trace():
+            h = self.bvh.trace(self.o, self.d, mode="per_ray", stats=False)
+            dr.eval(h.t, h.prim)
+        self.times.append(timed(trace)[0])
 
 
 def measure(v, f, o, d, branchings: list[int], kind: str, runs: int, height: int,

@@ -145,7 +145,8 @@ def embree_scene(v: np.ndarray, f: np.ndarray):
 # -- timed configurations ---------------------------------------------------------------------------
 
 
-def _timed(fn):
+def timed(fn):
+    """(seconds, result) of fn(), with Dr.Jit's queue drained before and after."""
     dr.sync_thread()  # nothing queued from before may be billed to this run
     t0 = time.perf_counter()
     out = fn()
@@ -167,7 +168,7 @@ def embree_config(scene, o: np.ndarray, d: np.ndarray, tmax, any_hit: bool, buil
         return pi
 
     def run(stats=True):
-        secs, pi = _timed(trace)
+        secs, pi = timed(trace)
         if any_hit:
             return secs, lambda: pi.numpy().astype(np.uint32), None
         return secs, lambda: dr.select(pi.is_valid(), pi.prim_index, mi.UInt32(layerbvh.MISS)).numpy(), None
@@ -185,7 +186,7 @@ def layer_config(bvh, mode: str, height: int, o_dev, d_dev, tmax_dev, any_hit: b
         return h, h.stats
 
     def run(stats=True):
-        secs, (h, stats) = _timed(lambda: trace(stats))
+        secs, (h, stats) = timed(lambda: trace(stats))
         if any_hit:
             return secs, lambda: h.numpy().astype(np.uint32), stats
         return secs, h.prim.numpy, stats
@@ -197,10 +198,9 @@ def make_configs(scene, embree_build_s, bvhs: dict, o, d, tmax, any_hit: bool, b
                  kind: str = "") -> list[Config]:
     # Rays go to the device once, outside the timing, for Embree and layerbvh alike.
     m = getattr(dr, backend)
-    o_dev = m.Array3f(*(m.Float(np.ascontiguousarray(o[:, c])) for c in range(3)))
-    d_dev = m.Array3f(*(m.Float(np.ascontiguousarray(d[:, c])) for c in range(3)))
+    o_dev, d_dev = meshes.device_rays(m, o, d)
     tmax_dev = m.Float(np.ascontiguousarray(tmax, np.float32)) if tmax is not None else None
-    dr.eval(o_dev, d_dev, tmax_dev)
+    dr.eval(tmax_dev)
     first = next(iter(bvhs))
     configs = [embree_config(scene, o, d, tmax, any_hit, embree_build_s)]
     # per_ray on every layout too: the treelet layout orders its nodes, so it is part of the baseline.
