@@ -1,8 +1,10 @@
 """Which Dr.Jit backend (LLVM or CUDA) a trace runs on, and its array types."""
 from __future__ import annotations
 
+import ctypes
 import os
 import platform
+from pathlib import Path
 
 import drjit as dr
 
@@ -64,8 +66,6 @@ def set_llvm_vector_width(width: int) -> None:
 
 
 def _llvm_target():
-    import ctypes
-    from pathlib import Path
     dr.llvm.Float(0).index  # noqa: B018  (initialises the LLVM backend)
     try:
         lib = ctypes.CDLL(str(Path(dr.__file__).parent / "libdrjit-core.so"))

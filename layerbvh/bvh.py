@@ -135,8 +135,8 @@ class LayerBVH:
 
     # -- tracing ---------------------------------------------------------------------------------
     def _trace_batch(self, batch: RayBatch, mode: str, any_hit: bool, count_work: bool):
-        return _trace(self.m, self.device, batch, mode, any_hit, self.tail_rays, count_work=count_work,
-                      tail_fraction=self.tail_fraction)
+        return _trace(self.m, self.device, batch, mode=mode, any_hit=any_hit, tail_rays=self.tail_rays,
+                      count_work=count_work, tail_fraction=self.tail_fraction)
 
     def _run(self, origins, directions, tmax, active, mode, any_hit, count_work, hint):
         if mode not in TRACE_MODES:
@@ -218,7 +218,7 @@ class LayerBVH:
             return Hits(t=dr.full(m.Float, dr.inf, n), prim=dr.full(m.UInt32, MISS, n), u=dr.zeros(m.Float, n),
                         v=dr.zeros(m.Float, n), stats=None,
                         instance=dr.full(m.UInt32, MISS, n) if self.instanced else None)
-        out = trace_inline(m, self.device, o, d, tmax, active, any_hit)
+        out = trace_inline(m, self.device, o, d, tmax, active, any_hit=any_hit)
         hit = out.prim != MISS
         return Hits(t=dr.select(hit, out.t, dr.inf), prim=out.prim, u=out.u, v=out.v, stats=None, instance=out.hit_inst)
 

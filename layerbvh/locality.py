@@ -9,6 +9,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from . import memtrace as mt
+from .bvh import build
 from .inputs import DEFAULT_TREELET_HEIGHT
 from .layout import LayerLayout
 from .memmodel import Caches, Preset, preset as named_preset, with_segment
@@ -456,7 +457,6 @@ def measure(vertices, faces, ray_sets: list[RaySet], settings: LocalitySettings,
     """Every kind x treelet height x mode x warp x preset of `settings`, each replayed once; each
     mode's trace checked against the kernel once per kind and height (settings.check).
     `progress(done, total, label)` is called after each replay."""
-    from .bvh import build
     t0 = time.perf_counter()
     presets = [with_segment(named_preset(p), seg) if seg else named_preset(p)
                for p in settings.presets for seg in (settings.segments or (None,))]

@@ -2,11 +2,21 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import drjit as dr
 
 # The one "no hit" value: the primitive of a ray that hit nothing (uint32), and the instance of
 # a ray that hit nothing or is not inside an instance.
+
+class EntryStack(NamedTuple):
+    """The global entry stack of a wavefront trace: entries pushed in earlier steps, `rows` per
+    ray slot (entry k of slot i at i * rows + k), link and entry distance in two arrays."""
+
+    link: object  # UInt32 (slots * rows)
+    t: object     # Float (slots * rows)
+    rows: int
+
 MISS = 0xFFFFFFFF
 # Work counted per ray when statistics are asked for: RayState field -> Results/Hits name.
 WORK = {"n_inner": "inner_nodes", "n_leaf": "leaves", "n_tri": "triangles", "n_iter": "iterations",

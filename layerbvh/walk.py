@@ -6,7 +6,7 @@ import drjit as dr
 from .geometry import FAR_SCALE, hit_children, hit_children_wide, hit_triangle, setup_ray, to_object_space
 from .layout import (EXIT_BIT, INSTANCE_TAG, LEAF_BIT, LEAF_FIRST_MASK, LEAVE, PAYLOAD_MASK, POP, DeviceLayout, leaf_range,
                      node_format)
-from .state import MISS, RayState
+from .state import MISS, EntryStack, RayState
 
 # Sorting networks that order a wide node's children by entry distance (compare-exchange pairs,
 # Knuth, TAOCP vol. 3, 5.3.4: 5 comparators for 4 inputs, 19 for 8, both optimal).
@@ -20,9 +20,8 @@ SORT_NETWORKS = {
 _FLT_MAX = 3.4028234663852886e38
 
 
-@dr.syntax
-def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool, any_hit: bool,
-         count_work: bool = True, active=None):
+def walk(m, lay: DeviceLayout, rays, s: RayState, *, stack: EntryStack | None, cap: int, bounded: bool,
+         any_hit: bool, count_work: bool = True, active=None):
     """Advance every ray of `s`, nearest child first, until it finishes or (when `bounded`)
     is about to continue in another treelet than `s.treelet`. `rays` (state.SlotRays,
     state.RayRecords or state.DirectRays) gives each slot's origin and direction.
@@ -38,7 +37,7 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
 
     With `count_work` False the work counters are left untouched (no statistics work).
     Entries pushed during this call live in a local stack of `cap` entries; entries pushed by
-    earlier steps are read (never written) from the global `stack` = (links, t, capacity),
+    earlier steps are read (never written) from the global `stack` (state.EntryStack; None: none),
     so the kernel has no read-after-write on global memory. Rays where `active` (default: all)
     is False do not move. Returns the new state, whether each ray finished, the treelet it
     continues in, and its local entries for write-back.
@@ -57,6 +56,13 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
     by (t, instance, primitive): ties in t go to the lower instance index, then the lower
     primitive id, in every mode.
     """
+    return _walk(m, lay, rays, s, stack, cap, bounded, any_hit, count_work, active)
+
+
+@dr.syntax
+def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap: int, bounded: bool, any_hit: bool,
+          count_work: bool, active):
+    """`walk`'s kernel (Dr.Jit's @syntax rewrite takes positional parameters only)."""
     world_o, world_d = rays.load(s.slot)
     instanced = lay.instances is not None
     wide = lay.branching > 2  # (a plain int and bool: the loop's state takes no dataclass)
@@ -79,7 +85,7 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
     tri_cur, tri_end = m.UInt32(0), m.UInt32(0)
     done = m.Bool(False)
     next_treelet = m.UInt32(s.treelet)
-    base = s.slot * stack[2] if stack is not None else m.UInt32(0)
+    base = s.slot * stack.rows if stack is not None else m.UInt32(0)
     active = dr.full(m.Bool, True, dr.width(s.link)) if active is None else m.Bool(active)
 
     while active:
@@ -115,8 +121,8 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, stack, cap: int, bounded: bool
         if stack is not None:
             from_global = want & ~from_local & (sp > 0)
             sp = dr.select(from_global, sp - 1, sp)
-            e_link = dr.select(from_global, dr.gather(m.UInt32, stack[0], base + sp, from_global), e_link)
-            e_t = dr.select(from_global, dr.gather(m.Float, stack[1], base + sp, from_global), e_t)
+            e_link = dr.select(from_global, dr.gather(m.UInt32, stack.link, base + sp, from_global), e_link)
+            e_t = dr.select(from_global, dr.gather(m.Float, stack.t, base + sp, from_global), e_t)
         empty = want & ~from_local & ~from_global
         done |= empty
         active &= ~empty

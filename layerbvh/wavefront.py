@@ -7,7 +7,7 @@ import drjit as dr
 
 from .inputs import RayBatch
 from .layout import DeviceLayout, treelet_levels
-from .state import DirectRays, RayRecords, RayState, Results, SlotRays
+from .state import DirectRays, EntryStack, RayRecords, RayState, Results, SlotRays
 from .stats import TraceStats
 from .walk import walk
 
@@ -38,7 +38,7 @@ def _sync():
     return time.perf_counter()
 
 
-def trace(m, lay: DeviceLayout, batch: RayBatch, mode: str, any_hit: bool, tail_rays: int = TAIL_RAYS,
+def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, tail_rays: int = TAIL_RAYS,
           count_work: bool = True, tail_fraction: float = TAIL_FRACTION):
     """Closest hit (or any hit) of every ray of `batch`; returns (Results, TraceStats)."""
     n = batch.n
@@ -54,7 +54,8 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, mode: str, any_hit: bool, tail_
     t0 = _sync()
     if mode == "per_ray":
         cap = stack_rows(lay)
-        out, done, _, _ = walk(m, lay, rays, s, None, cap, False, any_hit, count_work)
+        out, done, _, _ = walk(m, lay, rays, s, stack=None, cap=cap, bounded=False, any_hit=any_hit,
+                              count_work=count_work)
         res.write(out, done)
         dr.eval(*res.arrays())
         t1 = _sync()
@@ -64,9 +65,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, mode: str, any_hit: bool, tail_
         stats.work_bytes = n * 4 * 10  # ray in/out arrays
         return res, stats
 
-    if mode not in ("layer_sorted", "layer_unsorted"):
-        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    sort = mode == "layer_sorted"
+    sort = mode == "layer_sorted"  # (modes are checked where they come in: LayerBVH.trace/occluded)
     # A step pushes at most branching - 1 entries per level of its treelet, plus, in an instanced
     # layout, the LEAVE marker of the instance it enters (entering ends the step).
     levels = treelet_levels(lay.height, lay.branching)
@@ -75,6 +74,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, mode: str, any_hit: bool, tail_
     # Entries are only read below a ray's stack pointer, so the stacks need no zeroing.
     st_link = dr.empty(m.UInt32, n * cap_global)
     st_t = dr.empty(m.Float, n * cap_global)
+    stack = EntryStack(st_link, st_t, cap_global)
     finished = lay.treelet_count  # bucket after every treelet: finished rays sort last
     buckets = 1 << max(1, (finished).bit_length())
     state_bytes = len(s.fields()) * 4
@@ -85,14 +85,16 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, mode: str, any_hit: bool, tail_
         ta = _sync()
         if takes_tail(n_active, n0, stats.steps, tail_rays, tail_fraction):
             # Same nearest-first order as the steps, so the same hits and work counts.
-            out, done, _, _ = walk(m, lay, rays, s, (st_link, st_t, cap_global), cap_global, False, any_hit, count_work)
+            out, done, _, _ = walk(m, lay, rays, s, stack=stack, cap=cap_global, bounded=False, any_hit=any_hit,
+                                  count_work=count_work)
             res.write(out, done)
             dr.eval(*res.arrays())
             stats.time_traverse_s += _sync() - ta
             stats.tail_rays = n_active
             stats.steps += 1
             break
-        out, done, nl, local = walk(m, lay, rays, s, (st_link, st_t, cap_global), cap_local, True, any_hit, count_work)
+        out, done, nl, local = walk(m, lay, rays, s, stack=stack, cap=cap_local, bounded=True, any_hit=any_hit,
+                                   count_work=count_work)
         dr.eval(out, done, nl, local)
         tb = _sync()
         # Write back the entries pushed in this step above the ray's global stack.
@@ -133,12 +135,13 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, mode: str, any_hit: bool, tail_
     return res, stats
 
 
-def trace_inline(m, lay: DeviceLayout, o, d, tmax, active, any_hit: bool) -> RayState:
+def trace_inline(m, lay: DeviceLayout, o, d, tmax, active, *, any_hit: bool) -> RayState:
     """per_ray traversal of the caller's rays, one per lane, with no host synchronisation, so it
     can run inside the caller's symbolic loop (a bounce loop compiled into one kernel). Rays
     where `active` is False keep prim = MISS. Returns the final state (t, u, v, prim)."""
     n = max(dr.width(x) for x in (*o, *d, tmax, active))
     s = RayState.start(m, dr.zeros(m.Float, n) + m.Float(tmax), count_work=False,  # one tmax per lane
                        instanced=lay.instances is not None)
-    out, _, _, _ = walk(m, lay, DirectRays(o, d), s, None, stack_rows(lay), False, any_hit, False, active=active)
+    out, _, _, _ = walk(m, lay, DirectRays(o, d), s, stack=None, cap=stack_rows(lay), bounded=False, any_hit=any_hit,
+                       count_work=False, active=active)
     return out

@@ -2,7 +2,7 @@
 with the active Mitsuba variant, and again with each variant set later (no variant is set here)."""
 import mitsuba as _mi
 
-from .integrator import LayerBVHPathTracer, integrator_class, register
+from layerbvh_mitsuba.runtime.integrator import LayerBVHPathTracer, integrator_class, register
 
 
 def _on_variant_change(_old, new):

@@ -10,9 +10,11 @@ from pathlib import Path
 
 import pytest
 
-from .testing import ABResult, run_check
+import layerbvh
+from layerbvh_mitsuba import atomic
+from layerbvh_mitsuba.testing import ABResult, run_check
 
-TRAVERSALS = ("auto", "per_ray", "layer_sorted", "layer_unsorted")
+TRAVERSALS = layerbvh.TRACE_MODES  # the engine modes (the embree control is not a check of ours)
 RECORDS = "records"  # DIR/records/<test>.json, one per check: the summary is built from them
 
 
@@ -63,7 +65,6 @@ def _record(config, nodeid: str, result: ABResult) -> None:
     out = _results_dir(config)
     if out is None:
         return
-    from . import atomic
     rec = {"test": nodeid, "scene": result.scene, "traversal": result.traversal, "label": result.verdict.label,
            "passed": result.passed, "summary": result.verdict.summary(), "stock_s": result.stock_s,
            "stock_cached": result.stock_cached, "ours_s": result.ours_s, "rmse": result.metrics["rmse"],
@@ -127,7 +128,6 @@ def pytest_sessionfinish(session):
         return
     records = sorted((json.loads(p.read_text()) for p in (out / RECORDS).glob("*.json")),
                      key=lambda r: r["test"]) if (out / RECORDS).is_dir() else []
-    from . import atomic
     out.mkdir(parents=True, exist_ok=True)
     atomic.write_text(out / "summary.json", json.dumps({"checks": records}, indent=1))
     atomic.write_text(out / "index.html", summary_html(records))

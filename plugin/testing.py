@@ -1,84 +1,80 @@
-"""Reusable pytest helpers: check that the layerbvh integrator renders a scene like stock Mitsuba (same seed, and statistically)."""
+"""Reusable pytest helpers: check that the layerbvh integrator renders a scene like stock Mitsuba (same seed, and statistically), each an `ab.compare.compare` run."""
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from .metrics import SAME_SEED_MAX_MEAN_REL, SAME_SEED_MIN_FRAC, SAME_SEED_TOL, same_seed_verdict
-from .verdict import load_modified
+from layerbvh_mitsuba.ab import metrics
+from layerbvh_mitsuba.ab.compare import CompareSettings, Comparison, compare, ours_props as ours_props_of
+from layerbvh_mitsuba.ab.metrics import SAME_SEED_MAX_MEAN_REL, SAME_SEED_MIN_FRAC, SAME_SEED_TOL, same_seed_verdict
+from layerbvh_mitsuba.ab.render import load_scene, path_props, use_variant, write_exr
+from layerbvh_mitsuba.ab.report import write_comparison
+from layerbvh_mitsuba.ab.verdict import StatisticalStep, Verdict, independent_seed_test
+from layerbvh_mitsuba.runtime.cache import cache_dir
+from layerbvh_mitsuba.runtime.settings import Traversal
+from layerbvh_mitsuba.runtime.stats import RenderStats
+
+# Integrator properties that are fields of CompareSettings (the rest stay ours_props).
+_SETTING_PROPS = ("treelet_height", "branching", "leaf_size")
+
+
+def settings(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", ours_props=None, params=None,
+             **kw) -> CompareSettings:
+    """CompareSettings for the helpers' arguments: `ours_props` are layerbvh integrator properties
+    (treelet_height, branching and leaf_size go to their fields), `params` the scene's
+    $parameters, `kw` more CompareSettings fields."""
+    props = dict(ours_props or {})
+    fields = {k: props.pop(k) for k in _SETTING_PROPS if k in props}
+    return CompareSettings(scene=Path(scene_path), spp=spp, res=tuple(res) if res is not None else None, seed=seed,
+                           traversal=Traversal.parse(traversal), ours_props=props, params=dict(params or {}),
+                           **fields, **kw)
 
 
 @dataclass
 class SameSeedResult:
-    frac_within: float      # share of pixels whose every channel differs by <= tol
+    frac_within: float      # share of pixels within the same-seed tolerance in every channel
     mean_abs: float
     mean_ref: float
     max_abs: float
     stock: np.ndarray
     ours: np.ndarray
-    ours_stats: dict  # the layerbvh integrator's last_stats (loop, rays, wavefront_steps, modes_used, ...)
+    ours_stats: RenderStats  # the layerbvh integrator's last_stats
+    passed: bool = False     # the criterion held
 
     def summary(self) -> str:
         return (f"{100 * self.frac_within:.3f}% of pixels within tolerance, mean |diff| {self.mean_abs:.3g} "
                 f"(mean pixel {self.mean_ref:.3g}), max |diff| {self.max_abs:.3g}")
 
 
-def _mi():
-    from .render import use_variant
-    return use_variant()
-
-
 def load(scene_path, res=None, **params):
     """Load an XML scene with optional $parameters and a film resolution override."""
-    from .render import load_scene
-    return load_scene(_mi(), scene_path, res, **params)
-
-
-def render_pair(scene, spp: int, seed: int = 0, traversal: str = "per_ray", ours_scene=None, stats_out=None,
-                **ours_props):
-    """Stock `path` (with the scene's own settings) and `layerbvh` images of one scene, same seed.
-    `ours_props` go to the layerbvh integrator (e.g. treelet_height); `stats_out` (a dict), if
-    given, receives the integrator's last_stats."""
-    mi = _mi()
-    from .render import path_props
-    props = path_props(mi, scene)
-    stock = mi.load_dict({"type": "path", **props})
-    ours = mi.load_dict({"type": "layerbvh", "traversal": traversal, **props, **ours_props})
-    a = np.array(mi.render(scene, integrator=stock, spp=spp, seed=seed), np.float32)
-    b = np.array(mi.render(ours_scene or scene, integrator=ours, spp=spp, seed=seed), np.float32)
-    if stats_out is not None:
-        stats_out.update(ours.last_stats)
-    return a, b
+    return load_scene(use_variant(), str(scene_path), res, **params)
 
 
 def same_seed(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", tol=SAME_SEED_TOL, ours_props=None,
-              **params) -> SameSeedResult:
+              min_frac=SAME_SEED_MIN_FRAC, max_mean_rel=SAME_SEED_MAX_MEAN_REL, **params) -> SameSeedResult:
     """Same-seed stock and layerbvh renders of an XML scene (`params`: its $parameters;
-    `ours_props`: extra layerbvh integrator properties such as treelet_height)."""
-    scene = load(scene_path, res, **params)
-    stats: dict = {}
-    a, b = render_pair(scene, spp, seed, traversal, stats_out=stats, **(ours_props or {}))
-    v = same_seed_verdict(a, b, tol)["values"]
-    return SameSeedResult(frac_within=v["frac_within"], mean_abs=v["mean_abs"], mean_ref=v["mean_ref"],
-                          max_abs=v["max_abs"], stock=a, ours=b, ours_stats=stats)
+    `ours_props`: extra layerbvh integrator properties such as treelet_height, batch_rays),
+    measured by the same-seed criterion (metrics.same_seed_verdict)."""
+    c = compare(use_variant(), settings(scene_path, spp, res, seed, traversal, ours_props, params,
+                                        statistical_step=False))
+    v = same_seed_verdict(c.stock, c.ours, tol, min_frac, max_mean_rel)
+    return SameSeedResult(stock=c.stock, ours=c.ours, ours_stats=c.stats, passed=v["passed"], **v["values"])
 
 
 def assert_matches_stock(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", tol=SAME_SEED_TOL,
                          min_frac=SAME_SEED_MIN_FRAC, max_mean_rel=SAME_SEED_MAX_MEAN_REL, diff_dir=None,
                          ours_props=None, **params) -> SameSeedResult:
     """Same seed: the layerbvh render must equal stock `path` (metrics.same_seed_verdict): within
-    `tol` in `min_frac` of the pixels, with mean |diff| <= max_mean_rel * mean pixel value. On
-    failure the message gives the numbers and, with `diff_dir`, the stock/ours/diff images are
-    saved there as EXR."""
-    r = same_seed(scene_path, spp, res, seed, traversal, tol, ours_props, **params)
-    ok = r.frac_within >= min_frac and r.mean_abs <= max_mean_rel * r.mean_ref
-    if not ok:
+    `tol` (x max(1, |stock|)) in `min_frac` of the pixels, with mean |diff| <= max_mean_rel x mean
+    pixel value. On failure the message gives the numbers and, with `diff_dir`, the
+    stock/ours/diff images are saved there as EXR."""
+    r = same_seed(scene_path, spp, res, seed, traversal, tol, ours_props, min_frac, max_mean_rel, **params)
+    if not r.passed:
         where = ""
         if diff_dir is not None:
-            from .render import write_exr
             out = Path(diff_dir)
             for name, img in (("stock", r.stock), ("ours", r.ours), ("diff", np.abs(r.stock - r.ours))):
                 write_exr(out / f"{Path(scene_path).stem}_{name}.exr", img)
@@ -89,39 +85,25 @@ def assert_matches_stock(scene_path, spp=16, res=(32, 32), seed=0, traversal="pe
     return r
 
 
-def repeated_moments(scene, integrator, spp: int, repeats: int, seed0: int):
-    """Per-pixel mean and variance of `repeats` independent renders (the estimator's variance)."""
-    mi = _mi()
-    imgs = np.stack([np.array(mi.render(scene, integrator=integrator, spp=spp, seed=seed0 + k), np.float64)
-                     for k in range(repeats)])
-    return imgs.mean(0), imgs.var(0, ddof=1)
+def independent_seeds_vs_stock(scene_path, spp=4096, res=(6, 6), traversal="per_ray", modify=None, ours_props=None,
+                               **params) -> StatisticalStep:
+    """The verdict's second step (verdict.independent_seed_test: independent seeds, a per-pixel
+    Welch t-test, Šidák-corrected) of layerbvh against stock `path` at film `res` with `spp`
+    camera samples per pixel a side. `modify(params)` changes the scene for the layerbvh side (a
+    negative control); `ours_props`: extra layerbvh integrator properties. The result's
+    `ours_stats` is ours' last_stats."""
+    mi = use_variant()
+    s = settings(scene_path, spp, res, 0, traversal, ours_props, params)
+    props = path_props(mi, load(scene_path, res, **params))
+    ours = {k: v for k, v in ours_props_of(s, props).items() if k != "type"}
+    return independent_seed_test(mi, scene_path, tuple(res), spp, props, ours, dict(params), modify)
 
 
-def zscore_vs_stock(scene_path, spp=64, res=(8, 8), repeats=8, traversal="per_ray", alpha=0.01,
-                    modify=None, ours_props=None, **params) -> dict:
-    """Independent seeds: per-pixel Z-test (Šidák-corrected) of layerbvh against stock `path`.
-    `modify(params)` may change the scene for the layerbvh render (a negative control);
-    `ours_props`: extra layerbvh integrator properties. The result also holds `ours_stats`, the
-    integrator's last_stats of its last repeat."""
-    mi = _mi()
-    from .render import path_props
-    from .metrics import zscore_test
-    scene = load(scene_path, res, **params)
-    props = path_props(mi, scene)
-    stock = mi.load_dict({"type": "path", **props})
-    ref_mean, ref_var = repeated_moments(scene, stock, spp, repeats, seed0=1000)
-    ours_scene = scene if modify is None else load_modified(mi, scene_path, res, params, modify)
-    ours = mi.load_dict({"type": "layerbvh", "traversal": traversal, **props, **(ours_props or {})})
-    mean, var = repeated_moments(ours_scene, ours, spp, repeats, seed0=5000)
-    # Variance of a repeat's mean; zscore_test divides by the repeat count.
-    return {**zscore_test(ref_mean, ref_var, mean, var, repeats, repeats, alpha=alpha),
-            "ours_stats": dict(ours.last_stats)}
-
-
-def assert_statistically_matches_stock(scene_path, min_pass=0.975, **kw) -> dict:
-    r = zscore_vs_stock(scene_path, **kw)
-    assert r["pass_fraction"] >= min_pass, \
-        f"{scene_path}: only {100 * r['pass_fraction']:.1f}% of pixels pass the Z-test (need {100 * min_pass}%): {r}"
+def assert_statistically_matches_stock(scene_path, **kw) -> StatisticalStep:
+    """`independent_seeds_vs_stock` must pass the verdict's rule (metrics.z_test_passed)."""
+    r = independent_seeds_vs_stock(scene_path, **kw)
+    assert metrics.z_test_passed(r.pass_fraction), \
+        f"{scene_path}: {r.failing_pixels} of {r.pixels} pixels differ beyond noise: {r}"
     return r
 
 
@@ -131,14 +113,36 @@ class ABResult:
 
     scene: str
     traversal: str
-    verdict: object            # verdict.Verdict
-    metrics: dict              # metrics.compare_images
-    stock_s: float             # stock's render (0 when it came from the cache)
-    ours_s: float
-    stock_cached: bool
+    comparison: Comparison = field(repr=False)
     page: str | None = None    # index.html of its compare page, where one was kept
-    stock: object = field(default=None, repr=False)
-    ours: object = field(default=None, repr=False)
+
+    @property
+    def verdict(self) -> Verdict:
+        return self.comparison.verdict
+
+    @property
+    def metrics(self) -> dict:
+        return self.comparison.metrics
+
+    @property
+    def stock_s(self) -> float:  # stock's render (0 when it came from the cache)
+        return self.comparison.stock_time.render_s
+
+    @property
+    def ours_s(self) -> float:
+        return self.comparison.ours_time.render_s
+
+    @property
+    def stock(self) -> np.ndarray:
+        return self.comparison.stock
+
+    @property
+    def ours(self) -> np.ndarray:
+        return self.comparison.ours
+
+    @property
+    def stock_cached(self) -> bool:
+        return self.comparison.stock_time.cached
 
     @property
     def passed(self) -> bool:
@@ -156,61 +160,33 @@ class ABResult:
 
 def run_check(scene, spp=16, res=(64, 64), traversal="auto", seed=0, ours=None, variant=None, use_cache=True,
               keep_dir: Path | None = None, keep_all=False, ours_modify=None, **params) -> ABResult:
-    """The A/B check of the pytest plugin and `verdict_vs_stock`: stock `path` (the scene's own
-    path settings; with `use_cache`, cached by scene content and settings) against layerbvh with
-    `ours` integrator properties on top (and `ours_modify(params)` applied to its copy of the
-    scene: negative controls), same seed, then the two-step verdict; the compare page is
-    written to `keep_dir` when the check fails (or always with `keep_all`)."""
-    import mitsuba
-    import layerbvh
-    from . import metrics
-    from .converge import cached_stock
-    from .render import cache_dir, load_integrator, load_scene, path_props, render_passes, use_variant
-    from .report import write_report
-    from .verdict import judge
+    """The A/B check of the pytest plugin and `verdict_vs_stock`: `compare` of stock `path` (the
+    scene's own path settings; with `use_cache`, cached by scene content and settings) against
+    layerbvh with `ours` integrator properties on top (and `ours_modify(params)` applied to its
+    copy of the scene: negative controls), same seed, then the two-step verdict; the compare
+    page is written to `keep_dir` when the check fails (or always with `keep_all`)."""
     mi = use_variant(variant)
-    scene_path = Path(scene).resolve()
-    sc = load_scene(mi, str(scene_path), tuple(res), **params)
-    props = path_props(mi, sc)
-    settings = {"resolution": list(res), "integrator": props, "variant": mi.variant(), "params": params,
-                "versions": {"mitsuba": mitsuba.__version__, "layerbvh": layerbvh.__version__}}
-    t0 = time.perf_counter()
-    if use_cache:
-        stock, info = cached_stock(mi, sc, scene_path, settings, spp, seed, cache_dir("pytest"), "stock", False)
-        cached = bool(info.get("cached"))
-    else:
-        stock = render_passes(mi, sc, load_integrator(mi, {"type": "path", **props}), spp, seed, "stock", False)[0]
-        cached = False
-    stock_s = 0.0 if cached else time.perf_counter() - t0
-    ours_props = {"traversal": traversal, **props, **(ours or {})}
-    integ = load_integrator(mi, {"type": "layerbvh", **ours_props})
-    ours_scene = sc if ours_modify is None else load_modified(mi, scene_path, tuple(res), params, ours_modify)
-    img, ours_s = render_passes(mi, ours_scene, integ, spp, seed, "layerbvh", False)
-    judged = judge(mi, scene_path, stock, img, spp, props, ours_props, params, ours_modify)
-    result = ABResult(scene=str(scene), traversal=traversal, verdict=judged, metrics=metrics.compare_images(stock, img),
-                      stock_s=stock_s, ours_s=ours_s, stock_cached=cached, stock=stock, ours=img)
-    if keep_dir is not None and (keep_all or not judged.passed):
-        info = {"scene": str(scene_path), "spp": spp, "resolution": list(res), "seed": seed, "variant": mi.variant(),
-                "integrator": props, "ours": {"traversal": traversal, "render_s": ours_s, **(ours or {})},
-                "stock": {"render_s": stock_s, "cached": cached}}
-        write_report(keep_dir, stock, img, info, judged=judged)
-        result.page = str(keep_dir / "index.html")
+    c = compare(mi, settings(Path(scene).resolve(), spp, res, seed, traversal, ours, params, ours_modify=ours_modify,
+                             stock_cache=cache_dir("pytest") if use_cache else None))
+    result = ABResult(scene=str(scene), traversal=traversal, comparison=c)
+    if keep_dir is not None and (keep_all or not c.passed):
+        write_comparison(keep_dir, c)
+        result.page = str(Path(keep_dir) / "index.html")
     return result
 
 
 def verdict_vs_stock(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", ours_props=None, ours_modify=None,
-                     **params):
-    """The two-step verdict (plugin/verdict.py, as `layerbvh compare` gives it) of layerbvh
-    against stock `path` on an XML scene (`run_check`, stock rendered afresh): same seed, and
-    where same-seed paths diverged, independent seeds on a downsampled film. `ours_modify(params)`
-    changes ours' copy of the scene (a negative control). Returns verdict.Verdict."""
+                     **params) -> Verdict:
+    """The two-step verdict (ab/verdict.py, as `layerbvh compare` gives it) of layerbvh against
+    stock `path` on an XML scene (`run_check`, stock rendered afresh): same seed, and where
+    same-seed paths diverged, independent seeds on a downsampled film. `ours_modify(params)`
+    changes ours' copy of the scene (a negative control)."""
     return run_check(scene_path, spp=spp, res=res, traversal=traversal, seed=seed, ours=ours_props, use_cache=False,
                      ours_modify=ours_modify, **params).verdict
 
 
-def assert_agrees_with_stock(scene_path, **kw):
+def assert_agrees_with_stock(scene_path, **kw) -> Verdict:
     """`verdict_vs_stock` must say "same paths" or "agrees within Monte Carlo noise"."""
     v = verdict_vs_stock(scene_path, **kw)
     assert v.passed, f"{scene_path}: {v.label}: {v.summary()}"
     return v
-

@@ -1,7 +1,7 @@
-"""Entry point: the scaling benchmark (layerbvh_mitsuba.bench.scaling); run `.venv/bin/python scripts/bench_scaling.py --help`."""
+"""Entry point: the scaling benchmark (layerbvh_mitsuba.tools.bench.scaling); run `.venv/bin/python scripts/bench_scaling.py --help`."""
 import sys
 
-from layerbvh_mitsuba.bench.scaling import main
+from layerbvh_mitsuba.tools.bench.scaling import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -22,7 +22,7 @@ PRESET=${PRESET:-h200}
 OUT=${OUT:-out/gpu_check}
 mkdir -p "$OUT"
 lscpu | grep -m1 'Model name' || true
-timeout 300 $PY -m layerbvh_mitsuba.bench.gpu_check --scene scenes/paper_mix.xml --out "$OUT" --preset "$PRESET"
+timeout 300 $PY -m layerbvh_mitsuba.tools.bench.gpu_check --scene scenes/paper_mix.xml --out "$OUT" --preset "$PRESET"
 du -sh "$OUT"
 if [ -n "${BACKEND:-}" ]; then
   timeout 480 $PY scripts/gpu_check_device.py "$OUT" --backend "$BACKEND"

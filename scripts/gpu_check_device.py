@@ -24,7 +24,7 @@ MODES = ("per_ray", "layer_sorted")
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("folder", help="what plugin/bench/gpu_check.py wrote (rays.npz, model.json)")
+    p.add_argument("folder", help="what plugin/tools/bench/gpu_check.py wrote (rays.npz, model.json)")
     p.add_argument("--backend", default="cuda")
     p.add_argument("--runs", type=int, default=5)
     args = p.parse_args(argv)

@@ -39,7 +39,7 @@ class Mutation:
     tests: tuple      # pytest node ids that should catch it (run with -x, in this order)
 
 
-MB = "tests/test_mitsuba_backend.py::"
+MB = "tests/runtime/test_mitsuba_backend.py::"
 SAME_SEED_LAYER = (MB + "test_same_seed_matches_stock[cbox-layer_sorted]",
                    MB + "test_same_seed_matches_stock[empty_box-layer_unsorted]")
 
@@ -49,27 +49,28 @@ MUTATIONS = (
              "layerbvh/wavefront.py",
              "    while n_active > 0:\n",
              "    while n_active > 0 and stats.steps < 2:\n",
-             SAME_SEED_LAYER + ("tests/test_engine_hits.py::test_modes_agree_exactly[camera-bunny]",)),
+             SAME_SEED_LAYER + ("tests/engine/test_engine_hits.py::test_modes_agree_exactly[camera-bunny]",)),
     Mutation("first_exit_only", "exits beyond the first are ignored (the paper's bug): a step's other pushed exits "
              "are not written back",
              "layerbvh/wavefront.py",
              "mask = m.UInt32(k) < nl\n",
              "mask = (m.UInt32(k) < nl) & ((lk & 0x40000000) == 0)  # EXIT_BIT\n",
-             SAME_SEED_LAYER + ("tests/test_engine_exact.py::test_one_exit_rule_is_wrong_often_on_a_real_mesh",)),
+             SAME_SEED_LAYER + ("tests/engine/test_engine_exact.py::"
+                                "test_one_exit_rule_is_wrong_often_on_a_real_mesh",)),
     Mutation("tie_rule_flipped", "ties in t go to the larger primitive id",
              "layerbvh/walk.py",
              "    return prim < prim_best\n",
              "    return prim > prim_best\n",
-             ("tests/test_engine_layout.py::test_degenerate_meshes_build_and_trace[duplicated]",
-              "tests/test_stability.py::test_case[coplanar_overlap]")),
+             ("tests/engine/test_engine_layout.py::test_degenerate_meshes_build_and_trace[duplicated]",
+              "tests/tools/test_stability.py::test_case[coplanar_overlap]")),
     Mutation("tie_culled", "a stack entry at exactly the closest hit's distance is culled (no rounding margin)",
              "layerbvh/walk.py",
              "(e_t <= t_best * FAR_SCALE)",
              "(e_t < t_best)",
-             ("tests/test_engine_layout.py::test_degenerate_meshes_build_and_trace[duplicated]",
-              "tests/test_stability.py::test_case[coplanar_overlap]")),
+             ("tests/engine/test_engine_layout.py::test_degenerate_meshes_build_and_trace[duplicated]",
+              "tests/tools/test_stability.py::test_case[coplanar_overlap]")),
     Mutation("layer_path_skips_shadow_rays", "the integrator's layer path (wavefront loop) ignores its shadow rays",
-             "plugin/integrator.py",
+             "plugin/runtime/integrator.py",
              "~queries.occluded(",
              "(not megakernel) | ~queries.occluded(",
              SAME_SEED_LAYER),
@@ -77,46 +78,46 @@ MUTATIONS = (
              "layerbvh/bvh.py",
              "min(n, start + self.batch_rays))",
              "min(n, start + self.batch_rays - 1))",
-             ("tests/test_engine_batches.py::test_batches_change_nothing_but_memory[layer_sorted]",
-              "tests/test_large_pass.py::test_a_real_size_render_matches_stock")),
+             ("tests/engine/test_engine_batches.py::test_batches_change_nothing_but_memory[layer_sorted]",
+              "tests/runtime/test_large_pass.py::test_a_real_size_render_matches_stock")),
     Mutation("auto_reports_per_ray_runs_sorted", "auto decides as before but runs layer_sorted and reports per_ray",
              "layerbvh/bvh.py",
              "chosen = mode = ",
              'chosen, mode = "per_ray", "layer_sorted"; _decided = ',
-             ("tests/test_engine_batches.py::test_auto_runs_the_mode_it_reports",)),
+             ("tests/engine/test_engine_batches.py::test_auto_runs_the_mode_it_reports",)),
     Mutation("finished_rays_not_sorted_last", "the sort key of a finished ray is its last treelet, not 'after every "
              "treelet' (the next step keeps finished rays and loses active ones)",
              "layerbvh/wavefront.py",
              "keys = dr.select(done, m.UInt32(finished), out.treelet)",
              "keys = m.UInt32(out.treelet)",
              (MB + "test_same_seed_matches_stock[cbox-layer_sorted]",
-              "tests/test_engine_hits.py::test_modes_agree_exactly[incoherent-bunny]")),
+              "tests/engine/test_engine_hits.py::test_modes_agree_exactly[incoherent-bunny]")),
     Mutation("tail_step_not_counted", "the per-ray tail is not counted as a step in the statistics",
              "layerbvh/wavefront.py",
              "            stats.tail_rays = n_active\n            stats.steps += 1\n",
              "            stats.tail_rays = n_active\n",
-             ("tests/test_engine_layout.py::test_step_statistics",)),
+             ("tests/engine/test_engine_layout.py::test_step_statistics",)),
     Mutation("layer_modes_fall_back_to_per_ray", "the integrator's closest-hit queries run per_ray whatever the "
              "traversal (same hits, so the same image: only the statistics can tell)",
-             "plugin/adapter.py",
+             "plugin/runtime/adapter.py",
              "self.bvh.trace(ray.o, ray.d, ray.maxt, mode=self.traversal,",
              'self.bvh.trace(ray.o, ray.d, ray.maxt, mode="per_ray" if self.traversal.startswith("layer") '
              'else self.traversal,',
              SAME_SEED_LAYER),
     Mutation("stability_on_one_treelet", "the stability suite's image cases run at the default treelet height "
              "(one treelet: layer_sorted cannot differ from per_ray)",
-             "plugin/stability.py",
+             "plugin/tools/stability/cases.py",
              "LAYER_HEIGHT = 2\n",
              "LAYER_HEIGHT = 8\n",
-             ("tests/test_stability.py::test_case[dielectric_ior_1.5]",)),
+             ("tests/tools/test_stability.py::test_case[dielectric_ior_1.5]",)),
     Mutation("mis_weight_swapped", "the power heuristic weighs by the other strategy's pdf",
-             "plugin/integrator.py",
+             "plugin/runtime/integrator.py",
              "w = a2 / (a2 + b2)",
              "w = b2 / (a2 + b2)",
              (MB + "test_same_seed_matches_stock[cbox-per_ray]",)),
-    Mutation("z_test_without_repeats", "the Z-test takes a render's variance for the variance of the mean of the "
-             "repeats (too wide: it loses its power)",
-             "plugin/metrics.py",
+    Mutation("z_test_without_repeats", "the independent-seed test takes a sample's variance for the variance of "
+             "the pixel's mean (too wide: it loses its power)",
+             "plugin/ab/metrics.py",
              "va.astype(np.float64) / na, vb.astype(np.float64) / nb",
              "va.astype(np.float64), vb.astype(np.float64)",
              (MB + "test_z_test_catches_a_2_percent_albedo_change",)),
@@ -125,53 +126,53 @@ MUTATIONS = (
              "layerbvh/geometry.py",
              "EDGE_ERR = 16 * 2.0 ** -24\n",
              "EDGE_ERR = 0.0\n",
-             ("tests/test_stability.py::test_case[watertight_edges_vertices]",
-              "tests/test_stability.py::test_case[grazing_rays]",
-              "tests/test_stability.py::test_case[sliver_triangles]")),
+             ("tests/tools/test_stability.py::test_case[watertight_edges_vertices]",
+              "tests/tools/test_stability.py::test_case[grazing_rays]",
+              "tests/tools/test_stability.py::test_case[sliver_triangles]")),
     Mutation("auto_prepass_skipped", "auto decides during the render again (no pre-pass): a render whose kinds all "
              "go per_ray runs the wavefront loop",
-             "plugin/integrator.py",
-             "        if None in modes() and tracer.recorder is None:\n",
+             "plugin/runtime/integrator.py",
+             "        if None in modes():\n",
              "        if False:\n",
-             ("tests/test_auto_scenes.py::test_per_ray_everywhere_renders_the_per_ray_megakernel",)),
+             ("tests/runtime/test_auto_scenes.py::test_per_ray_everywhere_renders_the_per_ray_megakernel",)),
     Mutation("verdict_always_agrees", "the verdict's statistical step is ignored: diverged same-seed paths always "
              "'agree within noise'",
-             "plugin/metrics.py",
+             "plugin/ab/metrics.py",
              "    return AGREES if z_test_passed(z_pass_fraction) else DIFFERS\n",
              "    return AGREES\n",
-             ("tests/test_verdict.py::test_a_real_difference_differs[max_depth]",)),
+             ("tests/tools/test_verdict.py::test_a_real_difference_differs[max_depth]",)),
     Mutation("replay_ignores_culling", "the locality replay takes every popped entry, however far (the kernel culls "
              "those beyond the closest hit): its trace no longer follows the kernel",
              "layerbvh/memtrace.py",
              "link = e_link if (active and e_t <= fst[s, F_T] * _FAR) else _POP",
              "link = e_link if active else _POP",
-             ("tests/test_locality.py::test_trace_follows_the_kernel[closest-camera-bunny]",)),
+             ("tests/tools/test_locality.py::test_trace_follows_the_kernel[closest-camera-bunny]",)),
     Mutation("replay_never_sorts", "the locality replay's layer_sorted keeps the unsorted order between steps",
              "layerbvh/locality.py",
              'keep = np.argsort(keys, kind="stable")[:n_active - done] if sort else np.flatnonzero(keys != finished)',
              "keep = np.flatnonzero(keys != finished)",
-             ("tests/test_locality.py::test_sorting_must_cut_transactions",)),
+             ("tests/tools/test_locality.py::test_sorting_must_cut_transactions",)),
     Mutation("coalesce_without_dedup", "coalescing counts a segment once per lane that touches it",
              "layerbvh/memmodel.py",
              "            if j > 0 and out[j - 1] == s:\n                continue\n",
              "",
-             ("tests/test_memmodel.py::test_coalesce_broadcast_is_one_segment",)),
+             ("tests/engine/test_memmodel.py::test_coalesce_broadcast_is_one_segment",)),
     Mutation("wide_drops_farthest_child", "a wide node pushes one entry fewer than it hits (the farthest hit child "
              "is dropped)",
              "layerbvh/walk.py",
              "n_push = dr.select(n_hit > 1, n_hit - 1, m.UInt32(0))",
              "n_push = dr.select(n_hit > 2, n_hit - 2, m.UInt32(0))",
-             ("tests/test_engine_wide.py::test_every_mode_returns_the_binary_per_ray_bits[camera-4]",)),
+             ("tests/engine/test_engine_wide.py::test_every_mode_returns_the_binary_per_ray_bits[camera-4]",)),
     Mutation("collapse_opens_smallest", "the collapse pulls up the child of smallest surface area",
              "layerbvh/collapse.py",
              "if left[c] >= 0 and area[c] > best_area:",
              "if left[c] >= 0 and (best < 0 or area[c] < best_area):",
-             ("tests/test_engine_wide.py::test_collapse_pulls_up_the_largest_children[4]",)),
+             ("tests/engine/test_engine_wide.py::test_collapse_pulls_up_the_largest_children[4]",)),
     Mutation("boxes_not_widened", "child boxes are stored as built (a ray in a box's face plane misses it)",
              "layerbvh/layout.py",
              "    lo_out = np.nextafter(b.lo, np.float32(-np.inf))\n    hi_out = np.nextafter(b.hi, np.float32(np.inf))\n",
              "    lo_out, hi_out = b.lo, b.hi\n",
-             ("tests/test_stability.py::test_case[axis_aligned_rays]",)),
+             ("tests/tools/test_stability.py::test_case[axis_aligned_rays]",)),
 )
 
 
@@ -232,7 +233,8 @@ def main(argv=None) -> int:
     ap.add_argument("--only", default="", help="comma-separated mutation names")
     ap.add_argument("--list", action="store_true", help="print the mutations and exit")
     ap.add_argument("--dry-run", action="store_true",
-                    help="only check that each mutation's text occurs exactly once in the checkout (no copy, no tests)")
+                    help="only check that each mutation's text occurs exactly once in the checkout and its tests' "
+                    "files exist (no copy, no tests)")
     ap.add_argument("--no-baseline", action="store_true", help="skip the unmutated run of the listed tests")
     ap.add_argument("--keep", action="store_true", help="keep the temporary copy")
     ap.add_argument("--timeout", type=float, default=600, help="seconds per pytest run")
@@ -251,9 +253,13 @@ def main(argv=None) -> int:
     if args.dry_run:
         bad = 0
         for m in chosen:
-            found = (repo / m.path).read_text().count(m.old)
-            bad += found != 1
-            print(f"{m.name:34s} {'applicable' if found == 1 else f'not applicable: its text occurs {found} times in {m.path}'}")
+            there = (repo / m.path).is_file()
+            found = (repo / m.path).read_text().count(m.old) if there else 0
+            missing = [t for t in m.tests if not (repo / t.split("::")[0]).is_file()]
+            bad += found != 1 or bool(missing)
+            why = [] if found == 1 else [f"its text occurs {found} times in {m.path}" if there else f"no file {m.path}"]
+            why += [f"no test file {t.split('::')[0]}" for t in missing]
+            print(f"{m.name:34s} {'not applicable: ' + '; '.join(why) if why else 'applicable'}")
         return 1 if bad else 0
     python = args.python or str(repo / ".venv" / "bin" / "python")
     t_start = time.perf_counter()

@@ -1,7 +1,7 @@
-"""Entry point: BENCHMARKS.md from benchmark JSON (layerbvh_mitsuba.bench.report); run `.venv/bin/python scripts/report.py --help`."""
+"""Entry point: BENCHMARKS.md from benchmark JSON (layerbvh_mitsuba.tools.bench.report); run `.venv/bin/python scripts/report.py --help`."""
 import sys
 
-from layerbvh_mitsuba.bench.report import main
+from layerbvh_mitsuba.tools.bench.report import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,7 +1,7 @@
-"""Entry point: the stability suite -> STABILITY.md (layerbvh_mitsuba.stability_report); run `.venv/bin/python scripts/stability_report.py --help`."""
+"""Entry point: the stability suite -> STABILITY.md (layerbvh_mitsuba.tools.stability.report); run `.venv/bin/python scripts/stability_report.py --help`."""
 import sys
 
-from layerbvh_mitsuba.stability_report import main
+from layerbvh_mitsuba.tools.stability.report import main
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,24 +1,22 @@
-"""Shared fixtures: meshes the engine is tested on and Embree (stock Mitsuba) as ground truth."""
+"""Shared fixtures: the meshes the engine is tested on. numpy and layerbvh only (no Mitsuba): the
+engine's tests (tests/engine) run without Mitsuba installed; tests/runtime/conftest.py and
+tests/tools/conftest.py set Mitsuba's variant for theirs."""
 from __future__ import annotations
 
-import mitsuba as mi
-import numpy as np
+from pathlib import Path
+
 import pytest
 
-mi.set_variant("llvm_ad_rgb")
+from layerbvh import meshes
 
-from layerbvh_mitsuba.bench import meshes  # noqa: E402
-from layerbvh_mitsuba.repo import SCENES  # noqa: E402
-
-BUNNY = SCENES / "meshes" / "bunny.ply"
+BUNNY = Path(__file__).resolve().parents[1] / "scenes" / "meshes" / "bunny.ply"
 
 
 @pytest.fixture(scope="session")
 def bunny():
-    mesh = mi.load_dict({"type": "ply", "filename": str(BUNNY)})
-    v = np.array(mesh.vertex_positions_buffer()).reshape(-1, 3)
-    f = np.array(mesh.faces_buffer()).reshape(-1, 3).astype(np.int64)
-    return v, f
+    """The Stanford bunny (35,947 vertices, 69,451 triangles), read by layerbvh's own PLY reader:
+    the same float32 vertices and faces, bit for bit, as Mitsuba's PLY loader gives."""
+    return meshes.load_mesh(BUNNY)
 
 
 @pytest.fixture(scope="session")
@@ -27,22 +25,3 @@ def procedural():
     v, f = meshes.procedural_mesh(120_000, seed=3)
     assert len(f) >= 100_000
     return v, f
-
-
-def _layer_path_ran(stats: dict, mode: str) -> None:
-    """An image test of a layer mode really ran the layer path, from the integrator's last_stats:
-    the wavefront bounce loop, every query in `mode`, a BVH of more than one treelet, and more
-    than one wavefront step per query on average. A fallback to per_ray, or a BVH of one treelet
-    (cbox at the default treelet height 8), takes at most one step per query (measured there:
-    15 steps for 17 queries, a query with no ray left takes none); cbox at height 3 takes 3.6."""
-    assert stats["loop"] == "wavefront", stats["loop"]
-    assert set(stats["modes_used"]) == {mode}, stats["modes_used"]
-    assert stats["bvh"]["treelets"] > 1, "one treelet: the layer modes cannot differ from per_ray"
-    assert stats["wavefront_steps"] > stats["queries"], \
-        f"{stats['wavefront_steps']} wavefront steps for {stats['queries']} queries: the wavefront path did not run"
-
-
-@pytest.fixture(scope="session")
-def layer_path_ran():
-    """assert layer_path_ran(integrator.last_stats, "layer_sorted"): see _layer_path_ran."""
-    return _layer_path_ran

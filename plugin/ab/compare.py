@@ -1,0 +1,282 @@
+"""One A/B comparison: stock Mitsuba (`path`, Embree) against the `layerbvh` integrator on one scene at the same seed, then the two-step verdict. The command line, the sweep, the third-party table, the pytest helpers and the stability suite all run this."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Mapping
+
+import mitsuba
+import numpy as np
+
+import layerbvh
+from layerbvh_mitsuba.ab import metrics
+from layerbvh_mitsuba.ab.render import (
+    PathSettings,
+    TimedRender,
+    check_memory,
+    load_integrator,
+    load_scene,
+    path_settings,
+    scene_spp,
+    timed_render,
+)
+from layerbvh_mitsuba.ab.stock_cache import cached_stock
+from layerbvh_mitsuba.ab.verdict import Verdict, judge, load_modified, same_seed_only
+from layerbvh_mitsuba.runtime.settings import EMBREE, Traversal
+from layerbvh_mitsuba.runtime.stats import RenderStats
+
+STATS_SPP = 4  # spp of the separate counted pass (statistics, heat maps: work per ray needs few samples)
+STOCK, OURS = "stock", "ours"
+
+
+@dataclass(frozen=True)
+class CompareSettings:
+    """What one comparison renders. Ours gets the scene's own path settings (both sides do),
+    then the layerbvh properties below, then `ours_props` on top."""
+
+    scene: str | Path
+    spp: int | None = None                # None: the scene's sampler's
+    res: tuple[int, int] | None = None    # film (W, H); None: the scene's
+    seed: int = 0
+    traversal: Traversal = Traversal(layerbvh.AUTO)
+    treelet_height: int = layerbvh.DEFAULT_TREELET_HEIGHT
+    branching: int = layerbvh.DEFAULT_BRANCHING
+    leaf_size: int | None = None          # None: the branching's default
+    as_path: bool = False                 # compare a scene whose integrator is not path, as path
+    path_overrides: Mapping = field(default_factory=dict)  # path settings set over the scene's (both sides)
+    params: Mapping = field(default_factory=dict)      # the scene's $parameters
+    ours_props: Mapping = field(default_factory=dict)  # more layerbvh properties (max_depth, batch_rays, ...)
+    ours_modify: Callable | None = None   # ours' copy of the scene changed by ours_modify(mi.traverse(copy))
+    control: bool = False                 # also time our loop with Embree's queries: traversal vs loop
+    statistics_pass: bool = False         # a counted pass: traversal statistics and heat maps
+    statistical_step: bool = True         # where same-seed paths diverge, the independent-seed test
+    stock_cache: Path | None = None       # keep stock's image there (stock_cache.cached_stock)
+    progress: bool = False
+
+
+class ComparisonFailed(Exception):
+    """A side could not be loaded, set up or rendered: `side` (STOCK or OURS), `stage` ("load",
+    "setup", "render") and the error itself (`error`, also the __cause__)."""
+
+    def __init__(self, side: str, stage: str, error: BaseException):
+        super().__init__(f"{side} {stage}: {error}")
+        self.side, self.stage, self.error = side, stage, error
+
+
+@dataclass
+class SideTime:
+    """Where one side's render time went (ab.render.TimedRender less its image)."""
+
+    render_s: float           # the render itself: wall time less compilation and calibration
+    compile_s: float = 0.0
+    wall_s: float = 0.0
+    calibration_s: float = 0.0
+    cached: bool = False      # stock's image came from the cache (no time spent)
+
+    @classmethod
+    def of(cls, r: TimedRender) -> "SideTime":
+        return cls(r.seconds, r.compile_s, r.wall_s, r.calibration_s)
+
+    def as_dict(self) -> dict:
+        return {"render_s": self.render_s, "compile_s": self.compile_s, "wall_s": self.wall_s}
+
+
+@dataclass
+class Comparison:
+    """What a comparison found. Images are (H, W, C) float32; NaN/Inf pixels (counted in
+    `nonfinite`, stock then ours) are 0 in them, so metrics and the verdict stay finite."""
+
+    settings: CompareSettings
+    spp: int
+    resolution: tuple[int, int]     # (W, H)
+    variant: str
+    path: PathSettings              # the path settings both sides rendered with
+    ours_props: dict                # the layerbvh integrator's properties
+    stock: np.ndarray = field(repr=False)
+    ours: np.ndarray = field(repr=False)
+    nonfinite: tuple[int, int]
+    stock_time: SideTime
+    ours_time: SideTime
+    stats: RenderStats              # ours' timed render
+    verdict: Verdict
+    metrics: dict                   # metrics.compare_images(stock, ours)
+    control_time: SideTime | None = None
+    counted: RenderStats | None = None   # the statistics pass
+    counted_time: SideTime | None = None
+    heatmaps: dict = field(default_factory=dict, repr=False)
+    scene: object = field(default=None, repr=False)       # the loaded scene (stock's copy)
+    integrator: object = field(default=None, repr=False)  # ours, as it rendered (its tracer holds the BVH)
+
+    @property
+    def passed(self) -> bool:
+        return self.verdict.passed
+
+    def split(self) -> dict | None:
+        """Our time split by the control: loop (ours with Embree less stock) and traversal (ours
+        less ours with Embree)."""
+        if self.control_time is None:
+            return None
+        st, ctl, ou = self.stock_time.render_s, self.control_time.render_s, self.ours_time.render_s
+        return {"loop_s": ctl - st, "traversal_s": ou - ctl, "ours_over_stock": ou / st if st else None}
+
+    def info(self) -> dict:
+        """report.json's description of the run (report.write_report's `info`)."""
+        s = self.settings
+        info = {
+            "scene": str(s.scene), "spp": self.spp, "resolution": list(self.resolution), "seed": s.seed,
+            "variant": self.variant, "integrator": self.path.props, "scene_integrator": self.path.scene_integrator,
+            "compared_as": "path" + (" (--as-path)" if self.path.as_path else ""),
+            **({"compared_as_note": self.path.note} if self.path.note else {}),
+            **({"params": dict(s.params)} if s.params else {}),
+            "stock": {**self.stock_time.as_dict(), **({"cached": True} if self.stock_time.cached else {})},
+            "ours": {**self.ours_time.as_dict(), "calibration_s": self.ours_time.calibration_s,
+                     "build_s": self.stats.build_s,
+                     "kernel_load_s": self.stats.bvh.kernel_load_s if self.stats.bvh else 0.0,
+                     "loop": self.stats.loop, "trace_s": self.stats.trace_s, "shading_s": self.stats.shading_s,
+                     "traversal": s.traversal.name, "treelet_height": s.treelet_height, "branching": s.branching,
+                     **({"ours_props": dict(s.ours_props)} if s.ours_props else {})},
+            "auto_choices": self.stats.auto_choices,
+            "features": self.stats.features.as_dict(),
+        }
+        if any(self.nonfinite):
+            info["nonfinite_pixels"] = {"stock": self.nonfinite[0], "ours": self.nonfinite[1],
+                                        "note": "NaN/Inf pixels set to 0 for the metrics and the verdict"}
+        if self.counted is not None:
+            info["traversal"] = self.counted.traversal_dict()
+            info["statistics_pass"] = {"spp": min(self.spp, STATS_SPP), "render_s": self.counted_time.render_s,
+                                       "compile_s": self.counted_time.compile_s}
+        if self.control_time is not None:
+            info["embree_control"] = self.control_time.as_dict()
+            info["split"] = self.split()
+        return info
+
+    def summary(self) -> str:
+        """One line: the times, the split and the error metrics (what `layerbvh compare` prints)."""
+        st, ou, m = self.stock_time.render_s, self.ours_time.render_s, self.metrics
+        ratio = f" ({ou / st:.1f}x)" if st else ""
+        split = ""
+        if self.control_time is not None:
+            sp = self.split()
+            split = (f"; our loop with Embree {self.control_time.render_s:.2f} s: traversal {sp['traversal_s']:.2f} s, "
+                     f"loop {sp['loop_s']:.2f} s")
+        return (f"stock {st:.2f} s, layerbvh {ou:.2f} s{ratio}{split} (not counted: build {self.stats.build_s:.2f} s, "
+                f"compile {self.ours_time.compile_s:.2f} s, calibration {self.ours_time.calibration_s:.2f} s); "
+                f"rmse {m['rmse']:.3g}, FLIP {m['flip_mean']:.3g}, pixels > 1e-3: "
+                f"{100 * m['frac_pixels_over_1e-3']:.3f}%")
+
+
+def ours_props(s: CompareSettings, path_props: dict, traversal: Traversal | None = None, stats: bool = False) -> dict:
+    """The layerbvh integrator's properties for these settings and path settings."""
+    return {"type": "layerbvh", "traversal": (traversal or s.traversal).name, "treelet_height": s.treelet_height,
+            "branching": s.branching, "stats": stats, **path_props,
+            **({} if s.leaf_size is None else {"leaf_size": s.leaf_size}), **s.ours_props}
+
+
+def _finite(img: np.ndarray) -> tuple[np.ndarray, int]:
+    bad = ~np.isfinite(img)
+    return (np.where(bad, 0.0, img).astype(np.float32), int(bad.any(-1).sum())) if bad.any() else (img, 0)
+
+
+def check_memory_for(scene, spp: int, integ) -> None:
+    """Refuse (UserError, one line) a render of `integ` that would not fit in memory, before it
+    starts; builds the BVH (and refuses unsupported shapes) first."""
+    size = scene.sensors()[0].film().crop_size()
+    tracer = integ.tracer(scene)
+    work = 0
+    if tracer is not None:
+        st = tracer.bvh.stats
+        rays = min(int(size[0]) * int(size[1]) * spp, tracer.bvh.batch_rays)
+        work = st.total_bytes + rays * ((st.branching - 1) * st.depth * 8 + 150)  # entry stacks + ray state
+    check_memory(int(size[0]), int(size[1]), spp, "megakernel" if integ.megakernel(tracer) else "wavefront", work)
+
+
+def _stage(side: str, stage: str, fn: Callable):
+    """fn(), its failure a ComparisonFailed naming the side and stage (Ctrl-C passes through)."""
+    try:
+        return fn()
+    except KeyboardInterrupt:
+        raise
+    except Exception as e:
+        raise ComparisonFailed(side, stage, e) from e
+
+
+def _cached_stock(mi, s: CompareSettings, scene, scene_path: Path, props: dict, spp: int):
+    """Stock's image from `s.stock_cache` (rendered and kept there when missing) and its time
+    (0 when it came from the cache)."""
+    size = [int(x) for x in scene.sensors()[0].film().crop_size()]
+    key = {"resolution": size, "integrator": props, "variant": mi.variant(), "params": dict(s.params),
+           "versions": {"mitsuba": mitsuba.__version__, "layerbvh": layerbvh.__version__}}
+    t0 = time.perf_counter()
+    img, info = cached_stock(mi, scene, scene_path, key, spp, s.seed, s.stock_cache, "stock", s.progress)
+    cached = bool(info.get("cached"))
+    return img, SideTime(0.0 if cached else time.perf_counter() - t0, cached=cached)
+
+
+def compare(mi, s: CompareSettings, scene=None) -> Comparison:
+    """Stock `path` and the layerbvh integrator on `s.scene` at the same seed (and, with
+    `s.control`, our loop with Embree's queries between them), timed without kernel compilation
+    and auto's calibration; then the verdict (verdict.judge: same seed, and where same-seed paths
+    diverged, independent seeds), the image metrics and, with `s.statistics_pass`, a counted pass
+    for traversal statistics and heat maps. A side that fails raises ComparisonFailed; a refused
+    setting (a non-path scene without `as_path`) raises ab.render.UserError. `scene`: the scene
+    already loaded from `s.scene` at `s.res` with `s.params`, where the caller has it."""
+    scene_path = Path(s.scene)
+    res = tuple(s.res) if s.res is not None else None
+    if scene is None:
+        scene = _stage(STOCK, "load", lambda: load_scene(mi, str(scene_path), res, **s.params))
+    spp = s.spp or scene_spp(scene)
+    path = path_settings(mi, scene, s.as_path)
+    if s.path_overrides:
+        path.props.update(s.path_overrides)
+    props = path.props
+    ours_all = ours_props(s, props)
+
+    def setup():
+        integ = load_integrator(mi, ours_all)
+        check_memory_for(scene, spp, integ)
+        return integ
+    ours = _stage(OURS, "setup", setup)
+    ours_scene = scene
+    if s.ours_modify is not None:
+        ours_scene = _stage(OURS, "load", lambda: load_modified(mi, scene_path, res, s.params, s.ours_modify))
+
+    # Timed renders without work counters: what a user's render costs.
+    if s.stock_cache is not None:
+        stock_img, stock_time = _stage(STOCK, "render", lambda: _cached_stock(mi, s, scene, scene_path, props, spp))
+    else:
+        stock_int = _stage(STOCK, "setup", lambda: load_integrator(mi, {"type": "path", **props}))
+        r = _stage(STOCK, "render", lambda: timed_render(mi, scene, stock_int, spp, s.seed, "stock path", s.progress))
+        stock_img, stock_time = r.image, SideTime.of(r)
+    control_time = None
+    if s.control and not s.traversal.control:
+        ctl = _stage(OURS, "setup", lambda: load_integrator(mi, ours_props(s, props, Traversal.parse(EMBREE))))
+        control_time = SideTime.of(_stage(OURS, "render", lambda: timed_render(
+            mi, ours_scene, ctl, spp, s.seed, "layerbvh loop + Embree", s.progress)))
+    r = _stage(OURS, "render", lambda: timed_render(mi, ours_scene, ours, spp, s.seed, "layerbvh", s.progress))
+    ours_img, ours_time, stats = r.image, SideTime.of(r), ours.last_stats
+
+    counted = counted_time = None
+    heatmaps = {}
+    if s.statistics_pass:  # counters cost time: a pass of their own, reported apart
+        cint = _stage(OURS, "setup", lambda: load_integrator(mi, ours_props(s, props, stats=True)))
+        cr = _stage(OURS, "render", lambda: timed_render(mi, ours_scene, cint, min(spp, STATS_SPP), s.seed,
+                                                         "statistics pass", s.progress))
+        counted, counted_time, heatmaps = cint.last_stats, SideTime.of(cr), cint.heatmaps(ours_scene)
+
+    if stock_img.shape != ours_img.shape:
+        raise ComparisonFailed(OURS, "render", ValueError(
+            f"image shapes {list(stock_img.shape)} (stock) and {list(ours_img.shape)} (ours) differ"))
+    stock_img, bad_stock = _finite(stock_img)
+    ours_img, bad_ours = _finite(ours_img)
+    verdict_props = {k: v for k, v in ours_all.items() if k != "type"}
+    if s.statistical_step:
+        verdict = judge(mi, scene_path, stock_img, ours_img, spp, props, verdict_props, dict(s.params), s.ours_modify)
+    else:
+        verdict = same_seed_only(stock_img, ours_img)
+    h, w = stock_img.shape[:2]
+    return Comparison(settings=s, spp=spp, resolution=(w, h), variant=mi.variant(), path=path, ours_props=ours_all,
+                      stock=stock_img, ours=ours_img, nonfinite=(bad_stock, bad_ours), stock_time=stock_time,
+                      ours_time=ours_time, stats=stats, verdict=verdict, metrics=metrics.compare_images(stock_img, ours_img),
+                      control_time=control_time, counted=counted, counted_time=counted_time, heatmaps=heatmaps,
+                      scene=scene, integrator=ours)

@@ -1,0 +1,156 @@
+"""A/B report folder for stock vs ours (EXRs, PNGs, error and heat maps, report.json with the verdict, index.html), written whole."""
+from __future__ import annotations
+
+import io
+import json
+import math
+from numbers import Integral, Real
+from pathlib import Path
+
+import numpy as np
+
+from layerbvh_mitsuba.ab import metrics, page
+from layerbvh_mitsuba.ab.compare import Comparison
+from layerbvh_mitsuba.ab.render import write_exr
+from layerbvh_mitsuba.ab.verdict import StatisticalStep, Verdict, same_seed_only
+from layerbvh_mitsuba.atomic import atomic_folder
+
+# diff.png shows the largest channel of |ours - stock| per pixel, scaled so that its 99th
+# percentile is the top of the colour map (viridis): the scale adapts to how close the images are,
+# and is written on the page's colour bar.
+DIFF_PERCENTILE = 99.0
+
+
+def to_png_bytes(rgb01: np.ndarray) -> bytes:
+    """Encode an (H, W, 3) image with values in [0, 1] (already display-encoded) as 8-bit RGB PNG."""
+    from PIL import Image  # Pillow ships with matplotlib
+
+    u8 = np.round(np.clip(rgb01, 0.0, 1.0) * 255.0).astype(np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(u8), "RGB").save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def _colour_map(values: np.ndarray, cmap: str) -> np.ndarray:
+    """(H, W) values in [0, 1] -> (H, W, 3) colours of a matplotlib colour map."""
+    from matplotlib import colormaps  # local: matplotlib loads only when a plot is drawn
+
+    return colormaps[cmap](np.clip(values, 0.0, 1.0))[..., :3]
+
+
+def diff_map(stock: np.ndarray, ours: np.ndarray) -> tuple[np.ndarray, float]:
+    """The per-pixel largest channel of |ours - stock| divided by its DIFF_PERCENTILE-th
+    percentile (the scale), and that scale (0 when the images are equal)."""
+    d = np.abs(ours.astype(np.float64) - stock).max(-1)
+    scale = float(np.percentile(d, DIFF_PERCENTILE))
+    if scale <= 0:
+        scale = float(d.max())
+    return (d / scale if scale > 0 else d), scale
+
+
+def json_safe(x):
+    """Plain JSON types only: numpy scalars/arrays unwrapped, NaN/Inf become null."""
+    if isinstance(x, dict):
+        return {str(k): json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple, set, frozenset)):
+        items = sorted(x, key=repr) if isinstance(x, (set, frozenset)) else x
+        return [json_safe(v) for v in items]
+    if isinstance(x, np.ndarray):
+        return json_safe(x.tolist())
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, Integral):
+        return int(x)
+    if isinstance(x, Real):
+        f = float(x)
+        return f if math.isfinite(f) else None
+    if x is None or isinstance(x, str):
+        return x
+    return str(x)  # paths, enums, ...: a report should not die over an exotic info value
+
+
+def render_html(rep: dict, stock: np.ndarray, ours: np.ndarray, maps: dict, heatmaps: list) -> str:
+    """The self-contained index.html (page.render_page)."""
+    return page.render_page(rep, stock, ours, maps, heatmaps)
+
+
+def _write_bytes(path: Path, data: bytes) -> None:
+    with open(path, "wb") as f:
+        f.write(data)
+
+
+def _write_all(tmp: Path, stock: np.ndarray, ours: np.ndarray, rep: dict, flip_map: np.ndarray,
+               heatmaps: dict, statistical: StatisticalStep | None) -> None:
+    write_exr(tmp / "stock.exr", stock)
+    write_exr(tmp / "ours.exr", ours)
+    _write_bytes(tmp / "stock.png", to_png_bytes(metrics.tonemap_srgb(stock)))
+    _write_bytes(tmp / "ours.png", to_png_bytes(metrics.tonemap_srgb(ours)))
+    _write_bytes(tmp / "flip.png", to_png_bytes(_colour_map(flip_map, "magma")))
+    diff, scale = diff_map(stock, ours)
+    _write_bytes(tmp / "diff.png", to_png_bytes(_colour_map(diff, "viridis")))
+    maps = {"|ours − stock|": ("diff.png", page.colour_bar("viridis", "0", f"{scale:.3g}",
+                                                           f"largest channel of |ours − stock| (linear radiance); the "
+                                                           f"top is its {DIFF_PERCENTILE:g}th percentile")),
+            "ꟻLIP": ("flip.png", page.colour_bar("magma", "0", "1", "ꟻLIP error per pixel (0 = identical)"))}
+    if statistical is not None:
+        # The statistical step's film, each of its pixels shown as a block of the image's size.
+        fail = ~statistical.passing
+        h, w = stock.shape[:2]
+        ys = np.minimum(np.arange(h) * fail.shape[0] // h, fail.shape[0] - 1)
+        xs = np.minimum(np.arange(w) * fail.shape[1] // w, fail.shape[1] - 1)
+        big = fail[ys][:, xs]
+        colours = np.where(big[..., None], np.array([0.85, 0.1, 0.1]), 0.25 + 0.5 * metrics.tonemap_srgb(stock))
+        _write_bytes(tmp / "z_fail.png", to_png_bytes(colours))
+        zw, zh = statistical.resolution
+        maps["pixels that differ beyond noise"] = (
+            "z_fail.png", page.legend(f"red: the {statistical.failing_pixels} of {statistical.pixels} pixels of the "
+                                      f"{zw}×{zh} independent-seed test that fail it; grey: the stock image"))
+    heat = []
+    for name, img in sorted(heatmaps.items(), key=lambda kv: list(HEATMAP_TITLES).index(kv[0])
+                            if kv[0] in HEATMAP_TITLES else len(HEATMAP_TITLES)):
+        png, top = heatmap_png(img)
+        _write_bytes(tmp / f"heat_{name}.png", png)
+        write_exr(tmp / f"heat_{name}.exr", np.repeat(img[:, :, None], 3, 2))
+        heat.append((HEATMAP_TITLES.get(name, name), f"heat_{name}.png",
+                     page.colour_bar("inferno", "0", f"{top:.3g}", "per pixel sample (mean)")))
+    _write_bytes(tmp / "report.json", (json.dumps(rep, indent=2, allow_nan=False) + "\n").encode())
+    _write_bytes(tmp / "index.html", render_html(rep, stock, ours, maps, heat).encode())
+
+
+REPORT_MARKER = "report.json"  # the file that makes a folder a compare report
+
+
+def write_report(out_dir, stock_img, ours_img, info: dict, heatmaps: dict | None = None,
+                 judged: Verdict | None = None) -> dict:
+    """Write the stock-vs-ours report folder `out_dir` and return the report dict (= report.json).
+
+    `judged` is the two-step verdict (verdict.judge); without it only the same-seed step is
+    taken from the images. Written into a temporary sibling folder that then replaces `out_dir`
+    whole (atomic.atomic_folder): a crash leaves nothing half-written, and the folder's files
+    always come from one run."""
+    stock, ours = metrics.as_rgb(stock_img, "stock"), metrics.as_rgb(ours_img, "ours")
+    m, flip_map = metrics.compare_images_with_flip_map(stock, ours)
+    judged = judged or same_seed_only(stock, ours)
+    rep = json_safe({**dict(info), "metrics": m, "verdict": judged.as_dict()})
+    with atomic_folder(out_dir, REPORT_MARKER) as tmp:
+        _write_all(tmp, stock, ours, rep, flip_map, heatmaps or {}, judged.statistical)
+    return rep
+
+
+# -- traversal-cost heat maps -------------------------------------------------------------------------
+
+HEATMAP_TITLES = {"camera_inner": "inner nodes, camera rays", "camera_triangles": "triangles tested, camera rays",
+                  "path_inner": "inner nodes, whole paths", "path_triangles": "triangles tested, whole paths",
+                  "path_steps": "wavefront steps, whole paths"}
+
+
+def heatmap_png(values: np.ndarray) -> tuple[bytes, float]:
+    """A per-pixel count as a PNG in the inferno colour map scaled to its 99th percentile, and
+    that scale."""
+    top = float(np.percentile(values, 99)) or float(values.max()) or 1.0
+    return to_png_bytes(_colour_map(values / top, "inferno")), top
+
+
+def write_comparison(out_dir, c: Comparison) -> dict:
+    """The report folder of one comparison (ab.compare.compare); returns report.json's dict."""
+    return write_report(out_dir, c.stock, c.ours, c.info(), c.heatmaps, c.verdict)

@@ -1,0 +1,30 @@
+"""Closest hits and occlusion: every traversal mode against each other (against Embree:
+tests/runtime/test_engine_vs_embree.py)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import layerbvh
+
+from engine_helpers import rays, report
+
+
+@pytest.mark.parametrize("mesh_name", ["bunny", "procedural"])
+@pytest.mark.parametrize("kind", ["camera", "incoherent"])
+def test_modes_agree_exactly(request, mesh_name, kind):
+    v, f = request.getfixturevalue(mesh_name)
+    o, d = rays(v, kind)
+    bvhs = {tail: layerbvh.build(v, f, treelet_height=4, tail_rays=tail, tail_fraction=0.25 if tail else 0.0)
+            for tail in (0, 2048)}
+    ref = bvhs[0].trace(o, d, mode="per_ray")
+    assert np.mean(ref.prim != layerbvh.MISS) > 0.2, "test rays should mostly hit"
+    for mode, tail in (("layer_sorted", 0), ("layer_sorted", 2048), ("layer_unsorted", 0)):
+        h = bvhs[tail].trace(o, d, mode=mode)  # tail 0: every ray stays in the wavefront steps to the end
+        assert (h.stats.tail_rays > 0) == (tail > 0)
+        bad = (h.prim != ref.prim) | (h.t != ref.t) | (h.u != ref.u) | (h.v != ref.v)
+        assert not bad.any(), f"{mode} differs from per_ray on {bad.sum()} rays:\n" + \
+            report(bad, h.prim, ref.prim, h.t, ref.t, names=("prim", "prim_per_ray", "t", "t_per_ray"))
+        # Same traversal order, so the same work: a check of the statistics, not only the hits.
+        assert h.stats.inner_nodes == ref.stats.inner_nodes
+        assert h.stats.triangles == ref.stats.triangles

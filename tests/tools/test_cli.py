@@ -1,0 +1,109 @@
+"""The `layerbvh` command line: compare writes a complete report, render an EXR, bad input one clear error."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+
+from layerbvh_mitsuba.cli import main
+
+SCENES = Path(__file__).resolve().parents[2] / "scenes"
+
+
+def test_compare_writes_every_file(tmp_path, capsys):
+    out = tmp_path / "cmp"
+    rc = main(["compare", str(SCENES / "sphere_box.xml"), "--spp", "4", "--res", "24", "16", "--seed", "3",
+               "--traversal", "per_ray", "--out", str(out), "--no-progress"])
+    assert rc == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1].endswith("index.html")
+    for f in ("stock.exr", "ours.exr", "stock.png", "ours.png", "flip.png", "report.json", "index.html"):
+        assert (out / f).stat().st_size > 0, f
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["spp"] == 4 and rep["resolution"] == [24, 16] and rep["seed"] == 3
+    assert rep["scene"].endswith("sphere_box.xml")
+    for k in ("rmse", "rel_mse", "flip_mean", "delta_e2000_mean", "delta_e2000_p95", "max_abs", "frac_pixels_over_1e-3"):
+        assert k in rep["metrics"]
+    assert rep["metrics"]["frac_pixels_over_1e-3"] <= 0.01, "same seed: ours matches stock"
+    assert rep["stock"]["render_s"] > 0 and rep["ours"]["render_s"] > 0 and "build_s" in rep["ours"]
+    assert rep["traversal"]["rays"] > 0
+    assert mpimg.imread(out / "ours.png").shape[:2] == (16, 24)
+    html = (out / "index.html").read_text()
+    assert "sphere_box" in html and "<img" in html
+
+
+def test_render_writes_exr(tmp_path):
+    import mitsuba as mi
+    out = tmp_path / "img.exr"
+    assert main(["render", str(SCENES / "cbox.xml"), "--spp", "2", "--res", "16", "12", "-o", str(out),
+                 "--no-progress"]) == 0
+    img = np.array(mi.Bitmap(str(out)))
+    assert img.shape[:2] == (12, 16) and np.isfinite(img).all() and img.mean() > 0
+
+
+def _err(capsys):
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("layerbvh: error:"), err
+    return err[0]
+
+
+def test_bad_inputs_give_one_clear_line_and_no_output(tmp_path, capsys):
+    out = tmp_path / "o.exr"
+    assert main(["render", str(tmp_path / "missing.xml"), "-o", str(out), "--no-progress"]) == 2
+    assert "not found" in _err(capsys)
+    bad = tmp_path / "bad.xml"
+    bad.write_text('<scene version="3.0.0"><bsdf type="no_such_bsdf" id="b"/></scene>')
+    assert main(["render", str(bad), "-o", str(out), "--no-progress"]) == 2
+    assert "no_such_bsdf" in _err(capsys)
+    (tmp_path / "hair.txt").write_text("-1 0 0 0.1\n0 0.5 0 0.1\n1 0 0 0.1\n")
+    curve = tmp_path / "curve.xml"
+    curve.write_text("""<scene version="3.0.0"><sensor type="perspective"><film type="hdrfilm">
+        <integer name="width" value="8"/><integer name="height" value="8"/></film></sensor>
+        <shape type="shapegroup" id="grp"><shape type="linearcurve" id="hair">
+          <string name="filename" value="hair.txt"/></shape></shape>
+        <shape type="instance" id="inst1"><ref id="grp"/></shape></scene>""")
+    assert main(["compare", str(curve), "--out", str(tmp_path / "cmp"), "--no-progress"]) == 2
+    err = _err(capsys)
+    assert "'hair'" in err and "linearcurve" in err and "grp" in err
+    assert main(["render", str(SCENES / "cbox.xml"), "--traversal", "fast", "-o", str(out)]) == 2
+    assert "--traversal" in _err(capsys)
+    assert not out.exists() and not (tmp_path / "cmp").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".tmp")]
+
+
+@pytest.mark.parametrize("traversal", ["per_ray", "layer_sorted", "embree"])
+def test_a_scene_without_emitters_renders_black_like_stock(tmp_path, capsys, traversal):
+    """Regression: with nothing to add to L, the megakernel's loop state came back unchanged and
+    Dr.Jit's loop optimisation refused the re-recorded loop (a traceback)."""
+    scene = tmp_path / "dark.xml"
+    scene.write_text("""<scene version="3.0.0"><sensor type="perspective"><film type="hdrfilm">
+        <integer name="width" value="8"/><integer name="height" value="8"/></film></sensor>
+        <shape type="shapegroup" id="grp"><shape type="sphere"/></shape>
+        <shape type="instance" id="inst1"><ref id="grp"/></shape><shape type="rectangle"/></scene>""")
+    assert main(["compare", str(scene), "--out", str(tmp_path / "cmp"), "--traversal", traversal,
+                 "--no-progress"]) == 0, _err(capsys)
+    rep = json.loads((tmp_path / "cmp" / "report.json").read_text())
+    assert rep["metrics"]["rmse"] == 0
+
+
+def test_a_full_disk_is_one_line_and_leaves_nothing(tmp_path, capsys):
+    """compare into a filesystem with no room: one line naming the output and the reason, exit 2,
+    no traceback file, nothing left behind (a real 256 KiB tmpfs, as root; CI runs as root)."""
+    import os
+    import subprocess
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(disk)],
+                                           capture_output=True).returncode != 0:
+        pytest.skip("needs root to mount a small tmpfs")
+    try:
+        out = disk / "cmp"
+        rc = main(["compare", str(SCENES / "cbox.xml"), "--spp", "2", "--res", "64", "64", "--traversal", "per_ray",
+                   "--out", str(out), "--no-progress"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 2 and err == [f"layerbvh: error: no space left on device writing {out}; nothing written"], err
+        assert list(disk.iterdir()) == []
+    finally:
+        subprocess.run(["umount", str(disk)], check=True)
