@@ -203,6 +203,9 @@ def main(argv=None) -> int:
     args.command_line = "layerbvh " + shlex.join(sys.argv[1:] if argv is None else argv)  # what outputs quote
     try:
         return _run(args)
+    except BrokenPipeError:  # `layerbvh compare ... | head`: the reader left; outputs were written before
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # (Python's flush at exit would fail again)
+        return 141  # 128 + SIGPIPE, as a shell reports a command killed by a closed pipe
     except KeyboardInterrupt:  # Ctrl-C: outputs are written whole at the end, so nothing is left
         if not getattr(args, "no_progress", True):
             # A bar interrupted while it draws is never cleared: end its line (on a terminal, erase it).

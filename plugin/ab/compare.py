@@ -188,7 +188,7 @@ def check_memory_for(scene, spp: int, integ) -> None:
         st = tracer.bvh.stats
         rays = min(int(size[0]) * int(size[1]) * spp, tracer.bvh.batch_rays)
         work = st.total_bytes + rays * ((st.branching - 1) * st.depth * 8 + 150)  # entry stacks + ray state
-    check_memory(int(size[0]), int(size[1]), spp, "megakernel" if integ.megakernel(tracer) else "wavefront", work)
+    check_memory(int(size[0]), int(size[1]), spp, "megakernel" if integ.megakernel() else "wavefront", work)
 
 
 def _stage(side: str, stage: str, fn: Callable):
@@ -231,15 +231,15 @@ def compare(mi, s: CompareSettings, scene=None) -> Comparison:
         path.props.update(s.path_overrides)
     props = path.props
     ours_all = ours_props(s, props)
-
-    def setup():
-        integ = load_integrator(mi, ours_all)
-        check_memory_for(scene, spp, integ)
-        return integ
-    ours = _stage(OURS, "setup", setup)
     ours_scene = scene
     if s.ours_modify is not None:
         ours_scene = _stage(OURS, "load", lambda: load_modified(mi, scene_path, res, s.params, s.ours_modify))
+
+    def setup():
+        integ = load_integrator(mi, ours_all)
+        check_memory_for(ours_scene, spp, integ)  # builds the BVH (and refuses unsupported shapes) first
+        return integ
+    ours = _stage(OURS, "setup", setup)
 
     # Timed renders without work counters: what a user's render costs.
     if s.stock_cache is not None:

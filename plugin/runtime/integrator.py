@@ -259,7 +259,7 @@ class LayerBVHPathTracer:
         None for the embree control."""
         return self.scene_state(scene).tracer
 
-    def megakernel(self, tracer: SceneTracer | None) -> bool:
+    def megakernel(self) -> bool:
         """Whether the bounce loop compiles into one kernel (see the class docstring)."""
         if self._recorder is not None:
             return False  # recording reads the rays on the host
@@ -323,7 +323,7 @@ class LayerBVHPathTracer:
         state = self.scene_state(scene)
         tracer = state.tracer
         start = self._begin(scene, state, ray)
-        megakernel = self.megakernel(tracer)
+        megakernel = self.megakernel()
         queries = self._queries(scene, tracer, megakernel)
         n = dr.width(ray.o)
         active = mi.Bool(active) & dr.full(mi.Bool, True, n)

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import matplotlib.image as mpimg
@@ -107,3 +109,15 @@ def test_a_full_disk_is_one_line_and_leaves_nothing(tmp_path, capsys):
         assert list(disk.iterdir()) == []
     finally:
         subprocess.run(["umount", str(disk)], check=True)
+
+
+def test_a_reader_that_leaves_the_pipe_is_no_internal_error(tmp_path):
+    """`layerbvh render ... | true`: stdout's reader is gone before the summary line is printed.
+    The output is written whole first; the command then ends as a shell expects of a closed
+    pipe (status 141), with nothing on stderr (before: an "internal error" with a traceback)."""
+    out = tmp_path / "img.exr"
+    cmd = (f"{sys.executable} -m layerbvh_mitsuba.cli render {SCENES / 'cbox.xml'} --res 8 8 --spp 1 -o {out} "
+           f"--no-progress | true; echo ${{PIPESTATUS[0]}} >&2")
+    p = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, timeout=300)
+    assert p.stderr.strip().splitlines() == ["141"], p.stderr
+    assert out.is_file() and not list(tmp_path.glob(".*"))
