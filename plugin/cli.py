@@ -21,6 +21,7 @@ from layerbvh_mitsuba.ab.compare import (
     check_memory_for,
     compare,
     ours_props,
+    wrapped,
 )
 from layerbvh_mitsuba.ab.render import (
     UserError,
@@ -153,17 +154,20 @@ def cmd_render(mi, args) -> int:
     s = _settings(args)
     scene = load_scene(mi, args.scene, s.res)
     spp = s.spp or scene_spp(scene)
-    props = path_settings(mi, scene, args.as_path).props
+    path = path_settings(mi, scene, args.as_path, args.scene)
+    props = path.props
     integ = load_integrator(mi, ours_props(s, props))
     check_memory_for(scene, spp, integ)  # builds the BVH (and refuses unsupported shapes) first
-    img, secs = render_passes(mi, scene, integ, spp, args.seed, "layerbvh", not args.no_progress)
+    # In the scene's aov/moment wrapper where it has one: the EXR holds the wrapper's channels too.
+    img, secs = render_passes(mi, scene, wrapped(mi, path, integ), spp, args.seed, "layerbvh", not args.no_progress)
     if not np.isfinite(img).all():
         raise UserError(f"render produced {int((~np.isfinite(img)).any(-1).sum())} NaN/Inf pixels; nothing written")
     write_exr(args.output, img)
     st = integ.last_stats
     if args.heatmap:
         counted = load_integrator(mi, ours_props(s, props, stats=True))
-        render_passes(mi, scene, counted, min(spp, STATS_SPP), args.seed, "heat maps", not args.no_progress)
+        render_passes(mi, scene, wrapped(mi, path, counted), min(spp, STATS_SPP), args.seed, "heat maps",
+                      not args.no_progress)
         stem = str(Path(args.output).with_suffix(""))
         for name, values in counted.heatmaps(scene).items():
             write_exr(f"{stem}_heat_{name}.exr", np.repeat(values[:, :, None].astype(np.float32), 3, 2))

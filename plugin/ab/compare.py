@@ -126,7 +126,7 @@ class Comparison:
         info = {
             "scene": str(s.scene), "spp": self.spp, "resolution": list(self.resolution), "seed": s.seed,
             "variant": self.variant, "integrator": self.path.props, "scene_integrator": self.path.scene_integrator,
-            "compared_as": "path" + (" (--as-path)" if self.path.as_path else ""),
+            "compared_as": self.path.compared_as,
             **({"compared_as_note": self.path.note} if self.path.note else {}),
             **({"params": dict(s.params)} if s.params else {}),
             "stock": {**self.stock_time.as_dict(), **({"cached": True} if self.stock_time.cached else {})},
@@ -201,16 +201,22 @@ def _stage(side: str, stage: str, fn: Callable):
         raise ComparisonFailed(side, stage, e) from e
 
 
-def _cached_stock(mi, s: CompareSettings, scene, scene_path: Path, props: dict, spp: int):
+def _cached_stock(mi, s: CompareSettings, scene, scene_path: Path, path: PathSettings, spp: int):
     """Stock's image from `s.stock_cache` (rendered and kept there when missing) and its time
     (0 when it came from the cache)."""
     size = [int(x) for x in scene.sensors()[0].film().crop_size()]
-    key = {"resolution": size, "integrator": props, "variant": mi.variant(), "params": dict(s.params),
-           "versions": {"mitsuba": mitsuba.__version__, "layerbvh": layerbvh.__version__}}
+    key = {"resolution": size, "integrator": path.props, "variant": mi.variant(), "params": dict(s.params),
+           "versions": {"mitsuba": mitsuba.__version__, "layerbvh": layerbvh.__version__},
+           **({"stock": path.integrator({"type": "path", **path.props})} if path.wrapper else {})}
     t0 = time.perf_counter()
     img, info = cached_stock(mi, scene, scene_path, key, spp, s.seed, s.stock_cache, "stock", s.progress)
     cached = bool(info.get("cached"))
     return img, SideTime(0.0 if cached else time.perf_counter() - t0, cached=cached)
+
+
+def wrapped(mi, path: PathSettings, integ):
+    """`integ` (a loaded integrator) in the scene's aov/moment wrapper, where it has one."""
+    return integ if path.wrapper is None else load_integrator(mi, path.integrator(integ))
 
 
 def compare(mi, s: CompareSettings, scene=None) -> Comparison:
@@ -226,7 +232,7 @@ def compare(mi, s: CompareSettings, scene=None) -> Comparison:
     if scene is None:
         scene = _stage(STOCK, "load", lambda: load_scene(mi, str(scene_path), res, **s.params))
     spp = s.spp or scene_spp(scene)
-    path = path_settings(mi, scene, s.as_path)
+    path = path_settings(mi, scene, s.as_path, scene_path, s.params)
     if s.path_overrides:
         path.props.update(s.path_overrides)
     props = path.props
@@ -240,30 +246,37 @@ def compare(mi, s: CompareSettings, scene=None) -> Comparison:
         check_memory_for(ours_scene, spp, integ)  # builds the BVH (and refuses unsupported shapes) first
         return integ
     ours = _stage(OURS, "setup", setup)
+    # In a scene's aov/moment wrapper, our integrator is the wrapper's inner one: its statistics,
+    # BVH and calibration are read from it (`ours`), the wrapper renders (`ours_render`).
+    ours_render = _stage(OURS, "setup", lambda: wrapped(mi, path, ours))
 
     # Timed renders without work counters: what a user's render costs.
     if s.stock_cache is not None:
-        stock_img, stock_time = _stage(STOCK, "render", lambda: _cached_stock(mi, s, scene, scene_path, props, spp))
+        stock_img, stock_time = _stage(STOCK, "render", lambda: _cached_stock(mi, s, scene, scene_path, path, spp))
     else:
-        stock_int = _stage(STOCK, "setup", lambda: load_integrator(mi, {"type": "path", **props}))
+        stock_int = _stage(STOCK, "setup", lambda: load_integrator(mi, path.integrator({"type": "path", **props})))
         r = _stage(STOCK, "render", lambda: timed_render(mi, scene, stock_int, spp, s.seed, "stock path", s.progress))
         stock_img, stock_time = r.image, SideTime.of(r)
     control_time = None
     if s.control and not s.traversal.control:
-        ctl = _stage(OURS, "setup", lambda: load_integrator(mi, ours_props(s, props, Traversal.parse(EMBREE))))
+        ctl = _stage(OURS, "setup", lambda: wrapped(mi, path, load_integrator(
+            mi, ours_props(s, props, Traversal.parse(EMBREE)))))
         control_time = SideTime.of(_stage(OURS, "render", lambda: timed_render(
             mi, ours_scene, ctl, spp, s.seed, "layerbvh loop + Embree", s.progress)))
-    r = _stage(OURS, "render", lambda: timed_render(mi, ours_scene, ours, spp, s.seed, "layerbvh", s.progress))
+    r = _stage(OURS, "render", lambda: timed_render(mi, ours_scene, ours_render, spp, s.seed, "layerbvh", s.progress,
+                                                    calibrated=ours))
     ours_img, ours_time, stats = r.image, SideTime.of(r), ours.last_stats
 
     counted = counted_time = None
     heatmaps = {}
     if s.statistics_pass:  # counters cost time: a pass of their own, reported apart
         cint = _stage(OURS, "setup", lambda: load_integrator(mi, ours_props(s, props, stats=True)))
-        cr = _stage(OURS, "render", lambda: timed_render(mi, ours_scene, cint, min(spp, STATS_SPP), s.seed,
-                                                         "statistics pass", s.progress))
+        cr = _stage(OURS, "render", lambda: timed_render(mi, ours_scene, wrapped(mi, path, cint), min(spp, STATS_SPP),
+                                                         s.seed, "statistics pass", s.progress, calibrated=cint))
         counted, counted_time, heatmaps = cint.last_stats, SideTime.of(cr), cint.heatmaps(ours_scene)
 
+    if path.wrapper is not None:  # the wrapper's own channels (AOVs, moments) are its business: RGB is compared
+        stock_img, ours_img = stock_img[..., :3], ours_img[..., :3]
     if stock_img.shape != ours_img.shape:
         raise ComparisonFailed(OURS, "render", ValueError(
             f"image shapes {list(stock_img.shape)} (stock) and {list(ours_img.shape)} (ours) differ"))

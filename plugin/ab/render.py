@@ -7,6 +7,7 @@ import re
 import resource
 import sys
 import time
+import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -114,24 +115,67 @@ def signed_depth(value: int) -> int:
 
 # -- what the scene's integrator asks for -------------------------------------------------------------
 
-# Mitsuba class names of integrators and their plugin names (for messages and reports).
+# Integrator objects by the names they give themselves, and their plugin names (for messages and
+# reports). class_name() and to_string's prefix differ for some (volpath is VolumetricPathIntegrator
+# and prints VolumetricSimplePathIntegrator[...]; volpathmis VolpathMisIntegratorImpl and
+# VolumetricMisPathIntegrator[...]); a wrapper prints the integrators it holds by the latter.
 INTEGRATOR_PLUGINS = {
-    "PathIntegrator": "path", "VolumetricPathIntegrator": "volpath", "VolumetricMISPathIntegrator": "volpathmis",
+    "PathIntegrator": "path",
+    "VolumetricPathIntegrator": "volpath", "VolumetricSimplePathIntegrator": "volpath",
+    "VolpathMisIntegratorImpl": "volpathmis", "VolumetricMisPathIntegrator": "volpathmis",
     "DirectIntegrator": "direct", "AOVIntegrator": "aov", "MomentIntegrator": "moment",
     "ParticleTracerIntegrator": "ptracer", "DepthIntegrator": "depth", "StokesIntegrator": "stokes",
+    "PRBIntegrator": "prb", "LayerBVHIntegrator": "layerbvh",
 }
+WRAPPERS = ("aov", "moment", "stokes")  # integrators that run others and add channels
+
+
+def _plugin(cls: str) -> str:
+    return INTEGRATOR_PLUGINS.get(cls, cls.removesuffix("Integrator").lower())
+
+
+def _items(text: str) -> list[str]:
+    """The top-level items of the first `integrators = [...]` list in a wrapper's to_string."""
+    start = text.find("integrators = [")
+    if start < 0:
+        return []
+    items, depth, item = [], 0, ""
+    for ch in text[start + len("integrators = ["):]:
+        if ch == "[":
+            depth += 1
+        elif ch == "]":
+            if depth == 0:
+                break
+            depth -= 1
+        if ch == "," and depth == 0:
+            items.append(item)
+            item = ""
+        else:
+            item += ch
+    return [i.strip() for i in items + [item] if i.strip()]
+
+
+def _described(name: str, text: str) -> str:
+    if name not in WRAPPERS:
+        return name
+    inner = [_described(_plugin(i.split("[", 1)[0].strip()), i) for i in _items(text)]
+    return f"{name}({', '.join(inner)})" if inner else name
 
 
 def integrator_name(integ) -> str:
-    """The plugin name of a Mitsuba integrator object (`path`, `volpath`, `prb`, ...); wrappers
-    around a path tracer read `moment(path)`."""
+    """The plugin name of a Mitsuba integrator object (`path`, `volpath`, `prb`, ...); a wrapper
+    is named with what it wraps: `moment(volpath)`, `aov(direct)`, `moment(path, volpath)`."""
     cls = integ.class_name()
     if cls not in INTEGRATOR_PLUGINS:  # Python integrators (prb, ...) report their base class
         cls = str(integ).split("[", 1)[0].strip() or cls
-    name = INTEGRATOR_PLUGINS.get(cls, cls.removesuffix("Integrator").lower())
-    if name in ("moment", "aov") and "PathIntegrator[" in str(integ):
-        name += "(path)"
-    return name
+    return _described(_plugin(cls), str(integ))
+
+
+def inner_integrator_text(integ) -> str:
+    """The to_string of the first integrator a wrapper runs (of the integrator itself if it
+    wraps none): where its max_depth and rr_depth are read."""
+    items = _items(str(integ)) if _plugin(integ.class_name()) in WRAPPERS else []
+    return items[0] if items else str(integ)
 
 
 def _int_setting(text: str, key: str) -> int | None:
@@ -139,42 +183,122 @@ def _int_setting(text: str, key: str) -> int | None:
     return signed_depth(int(m.group(1))) if m else None
 
 
+@dataclass(frozen=True)
+class Wrapper:
+    """An `aov` or `moment` integrator around one path tracer (possibly through another such
+    wrapper), as the scene's XML states it: it adds channels (AOVs, second moments) to the path
+    tracer's estimate and changes nothing else. `wrap(inner)` is the same wrapper around another
+    integrator (a dict or a loaded object): stock's `path`, or our `layerbvh`."""
+
+    type: str                        # "aov" | "moment"
+    props: tuple = ()                # its own properties as (name, value) pairs (aov: aovs)
+    inner: "Wrapper | None" = None   # a wrapper it wraps, else it wraps the path tracer itself
+
+    def wrap(self, inner) -> dict:
+        return {"type": self.type, **dict(self.props), "inner": inner if self.inner is None else self.inner.wrap(inner)}
+
+    @property
+    def name(self) -> str:
+        return f"{self.type}({'path' if self.inner is None else self.inner.name})"
+
+
+def _substituted(value: str | None, defaults: dict) -> str | None:
+    return None if value is None else re.sub(r"\$(\w+)", lambda m: str(defaults.get(m.group(1), m.group(0))), value)
+
+
+def _xml_wrapper(el, defaults: dict) -> tuple[Wrapper | None, dict]:
+    """(the wrapper, the inner path's XML properties) of an <integrator> element, or (None, {})
+    when it is not aov/moment around exactly one path tracer with properties we know."""
+    kind = _substituted(el.get("type"), defaults)
+    if kind not in ("aov", "moment"):
+        return None, {}
+    props, inner = [], []
+    for child in el:
+        if child.tag == "integrator":
+            inner.append(child)
+        elif kind == "aov" and child.tag == "string" and child.get("name") == "aovs":
+            props.append(("aovs", _substituted(child.get("value"), defaults)))
+        elif child.tag != "default":
+            return None, {}
+    if len(inner) != 1:
+        return None, {}
+    if _substituted(inner[0].get("type"), defaults) == "path":
+        path = {c.get("name"): _substituted(c.get("value"), defaults) for c in inner[0] if c.tag == "boolean"}
+        return Wrapper(kind, tuple(props)), path
+    nested, path = _xml_wrapper(inner[0], defaults)
+    return (None, {}) if nested is None else (Wrapper(kind, tuple(props), nested), path)
+
+
+def scene_wrapper(scene_path, params: dict | None = None) -> tuple[Wrapper | None, dict]:
+    """The wrapper around a path tracer that the scene file's <integrator> states, read from its
+    XML (an `aov` wrapper's channel list is in its properties, not in the loaded object), and the
+    inner path's boolean properties; (None, {}) for anything else."""
+    try:
+        root = ET.parse(scene_path).getroot()
+    except (OSError, ET.ParseError):
+        return None, {}
+    defaults = {d.get("name"): d.get("value") for d in root.iter("default")}
+    defaults.update({k: str(v).lower() if isinstance(v, bool) else str(v) for k, v in (params or {}).items()})
+    el = root.find("integrator")
+    return (None, {}) if el is None else _xml_wrapper(el, defaults)
+
+
 @dataclass
 class PathSettings:
     """The `path` settings both sides of a comparison render with, and where they come from.
 
     `props`: max_depth, rr_depth, hide_emitters (only those the scene sets). `scene_integrator`:
-    the scene's integrator (`integrator_name`). `as_path`: the scene's integrator is not `path`
-    and the user asked to compare it as one (`--as-path`); `note` says what was taken from it."""
+    the scene's integrator (`integrator_name`). `wrapper`: the scene's `aov`/`moment` around its
+    path tracer, kept on both sides (stock's path inside on one, our layerbvh on the other).
+    `as_path`: the scene's integrator is neither path nor such a wrapper and the user asked to
+    compare it as path (`--as-path`); `note` says what was taken from it."""
 
     props: dict
     scene_integrator: str
     as_path: bool = False
     note: str = ""
+    wrapper: Wrapper | None = None
+
+    def integrator(self, inner):
+        """What a side renders: `inner` (a path or layerbvh dict or object), in the scene's
+        wrapper where it has one."""
+        return inner if self.wrapper is None else self.wrapper.wrap(inner)
+
+    @property
+    def compared_as(self) -> str:
+        return self.wrapper.name if self.wrapper else "path" + (" (--as-path)" if self.as_path else "")
 
 
-def path_settings(mi, scene, as_path: bool = False) -> PathSettings:
+SUPPORTED = "path, and aov or moment around path"
+
+
+def path_settings(mi, scene, as_path: bool = False, scene_path=None, params: dict | None = None) -> PathSettings:
     """The scene's own path settings (max_depth, rr_depth, hide_emitters, read from its integrator
-    object). A scene whose integrator is not `path` is refused (UserError) unless `as_path`:
-    then its settings are read where it has them (a wrapper's inner path, volpath's depths)."""
+    object). An `aov`/`moment` wrapper around path (read from `scene_path`'s XML with its
+    `params`) is kept (`wrapper`). Any other integrator is refused (UserError) unless `as_path`:
+    then its settings are read where it has them (a wrapper's inner integrator, volpath's depths)."""
     integ = scene.integrator()
     if integ is None:
         return PathSettings({}, "path")
     name = integrator_name(integ)
-    text = str(integ)
-    if name != "path" and not as_path:
-        raise UserError(f"the scene's integrator is {name}, not path: layerbvh renders with a path tracer, so "
-                        f"both sides would render something else than the scene asks; pass --as-path to compare "
-                        f"them rendered with path")
-    inner = text[text.index("PathIntegrator["):] if name != "path" and "PathIntegrator[" in text else text
+    wrapper, inner_xml = scene_wrapper(scene_path, params) if scene_path is not None else (None, {})
+    if wrapper is not None and wrapper.name != name:
+        wrapper = None  # the XML's first <integrator> is not the one loaded (an include): not read
+    if name != "path" and wrapper is None and not as_path:
+        raise UserError(f"the scene's integrator is {name}: layerbvh renders {SUPPORTED}, so both sides would "
+                        f"render something else than the scene asks; pass --as-path to compare them rendered with "
+                        f"path")
+    inner = inner_integrator_text(integ)
     props = {k: v for k in ("max_depth", "rr_depth") if (v := _int_setting(inner, k)) is not None}
     if name == "path" or name == "volpath":
         props["hide_emitters"] = bool(integ.hide_emitters)
+    elif wrapper is not None and "hide_emitters" in inner_xml:
+        props["hide_emitters"] = inner_xml["hide_emitters"].lower() == "true"
     note = ""
-    if name != "path":
+    if name != "path" and wrapper is None:
         shown = ", ".join(f"{k}={v}" for k, v in props.items()) or "path's defaults"
         note = f"the scene's integrator is {name}; both sides rendered with path ({shown})"
-    return PathSettings(props, name, as_path=name != "path", note=note)
+    return PathSettings(props, name, as_path=name != "path" and wrapper is None, note=note, wrapper=wrapper)
 
 
 def path_props(mi, scene) -> dict:
@@ -242,13 +366,16 @@ class TimedRender:
     calibration_s: float  # auto's timing runs (layerbvh integrator)
 
 
-def timed_render(mi, scene, integrator, spp: int, seed: int, label: str = "", progress: bool = False) -> TimedRender:
+def timed_render(mi, scene, integrator, spp: int, seed: int, label: str = "", progress: bool = False,
+                 calibrated=None) -> TimedRender:
     """`render_passes`, with kernel compilation and auto calibration taken out of the render time.
 
     Dr.Jit compiles a kernel the first time it sees it; a render that meets a new one pays for
     the compile inside its wall time. Dr.Jit's kernel history reports each launch's compile
-    time (zero for kernels found in its on-disk cache), so it is reported on its own."""
-    calibration = getattr(integrator, "calibration_s", lambda: 0.0)
+    time (zero for kernels found in its on-disk cache), so it is reported on its own. Auto's
+    calibration is read from `calibrated` (default: the integrator itself; a wrapper's inner
+    layerbvh where a wrapper renders)."""
+    calibration = getattr(calibrated if calibrated is not None else integrator, "calibration_s", lambda: 0.0)
     cal0 = calibration()
     with CompileClock() as clock:
         img, wall = render_passes(mi, scene, integrator, spp, seed, label, progress)

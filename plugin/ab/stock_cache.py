@@ -61,7 +61,8 @@ def reference_key(scene: Path, settings: dict) -> str:
 
 def cached_stock(mi, scene, scene_path: Path, settings: dict, spp: int, seed: int, cache: Path, label: str,
                  progress: bool) -> tuple[np.ndarray, dict]:
-    """A stock `path` render (settings["integrator"], `spp`, `seed`): read from the cache when
+    """A stock render (settings["stock"], an integrator dict, else `path` with
+    settings["integrator"]; `spp`, `seed`): read from the cache when
     its key (`reference_key`: every file of the scene, `settings`, spp and seed) and the EXR's
     SHA-256 match, else rendered and stored (a damaged or replaced cache file is rendered again,
     with a notice)."""
@@ -79,7 +80,7 @@ def cached_stock(mi, scene, scene_path: Path, settings: dict, spp: int, seed: in
         except (OSError, ValueError, RuntimeError) as e:
             problem = f"cannot be read ({str(e).strip().splitlines()[-1] if str(e).strip() else type(e).__name__})"
         print(f"layerbvh: cached reference {exr} {problem}; rendering it again", file=sys.stderr)
-    stock = load_integrator(mi, {"type": "path", **settings["integrator"]})
+    stock = load_integrator(mi, settings.get("stock") or {"type": "path", **settings["integrator"]})
     img, secs = render_passes(mi, scene, stock, spp, seed, label, progress)
     if not np.isfinite(img).all():
         raise SceneFilesError("the stock render has NaN/Inf pixels; nothing cached")

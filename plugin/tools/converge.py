@@ -408,7 +408,10 @@ def run(mi, s: ConvergeSettings) -> dict:
     t0 = time.perf_counter()
     scene = load_scene(mi, str(scene_path), s.res)
     load_s = time.perf_counter() - t0
-    path = path_settings(mi, scene, s.as_path)
+    path = path_settings(mi, scene, s.as_path, scene_path)
+    if path.wrapper is not None:  # the wrapper adds channels, not error: its inner path tracer is scored
+        path.note = (f"the scene's integrator is {path.scene_integrator}; its radiance (the path tracer inside) "
+                     f"is scored, its other channels are not")
     props = path.props
     size = [int(x) for x in scene.sensors()[0].film().crop_size()]
     settings = {"ref_spp": s.ref_spp, "resolution": size, "variant": mi.variant(), "mitsuba": mi.__version__,
@@ -432,7 +435,7 @@ def run(mi, s: ConvergeSettings) -> dict:
     doc = {
         "scene": str(scene_path), "resolution": size, "variant": mi.variant(), "budget_s": s.budget,
         "max_spp": max_spp, "scene_load_s": load_s, "integrator": props,
-        "scene_integrator": path.scene_integrator, "compared_as": "path" + (" (--as-path)" if path.as_path else ""),
+        "scene_integrator": path.scene_integrator, "compared_as": "path" + (" (--as-path)" if path.as_path else " (the wrapper's radiance)" if path.wrapper else ""),
         "reference": {k: ref_info[k] for k in ("path", "key", "cached", "render_s")} | {"spp": s.ref_spp},
         "configs": [{"name": c.name, "traversal": c.traversal or "stock (Embree)", "treelet_height":
                      None if c.stock or c.traversal == "per_ray" else c.treelet_height,

@@ -166,7 +166,7 @@ def run_worker(args) -> dict:
         return rec
     rec["triangles"], rec["other_shapes"] = _shape_counts(scene)
     # The table compares every scene as path and says so where its integrator is another one.
-    path = path_settings(mi, scene, as_path=True)
+    path = path_settings(mi, scene, as_path=True, scene_path=scene_path)
     overrides, note = {}, path.note
     if "hide_emitters" in text and "hide_emitters" not in path.props:
         m = re.search(r'name\s*=\s*"hide_emitters"\s+value\s*=\s*"(\w+)"', text)

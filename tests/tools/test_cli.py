@@ -7,9 +7,11 @@ import sys
 from pathlib import Path
 
 import matplotlib.image as mpimg
+import mitsuba as mi
 import numpy as np
 import pytest
 
+from layerbvh_mitsuba.ab.render import integrator_name
 from layerbvh_mitsuba.cli import main
 
 SCENES = Path(__file__).resolve().parents[2] / "scenes"
@@ -37,7 +39,6 @@ def test_compare_writes_every_file(tmp_path, capsys):
 
 
 def test_render_writes_exr(tmp_path):
-    import mitsuba as mi
     out = tmp_path / "img.exr"
     assert main(["render", str(SCENES / "cbox.xml"), "--spp", "2", "--res", "16", "12", "-o", str(out),
                  "--no-progress"]) == 0
@@ -121,3 +122,34 @@ def test_a_reader_that_leaves_the_pipe_is_no_internal_error(tmp_path):
     p = subprocess.run(["bash", "-c", cmd], capture_output=True, text=True, timeout=300)
     assert p.stderr.strip().splitlines() == ["141"], p.stderr
     assert out.is_file() and not list(tmp_path.glob(".*"))
+
+
+@pytest.mark.parametrize("integrator,name", [
+    ({"type": "moment", "inner": {"type": "volpath"}}, "moment(volpath)"),
+    ({"type": "moment", "inner": {"type": "path"}}, "moment(path)"),
+    ({"type": "moment", "a": {"type": "path"}, "b": {"type": "volpathmis"}}, "moment(path, volpathmis)"),
+    ({"type": "aov", "aovs": "d:depth", "inner": {"type": "direct"}}, "aov(direct)"),
+    ({"type": "moment", "x": {"type": "aov", "aovs": "d:depth", "inner": {"type": "path"}}}, "moment(aov(path))"),
+    ({"type": "volpath"}, "volpath"), ({"type": "volpathmis"}, "volpathmis"), ({"type": "path"}, "path"),
+    ({"type": "prb"}, "prb")])
+def test_integrators_are_named_by_what_they_wrap(integrator, name):
+    """Regression: a moment wrapper around volpath was named "moment(path)" (its test for an inner
+    path, "PathIntegrator[" in its text, matched VolumetricSimplePathIntegrator[)."""
+    assert integrator_name(mi.load_dict(integrator)) == name
+
+
+def test_a_wrapped_volpath_scene_is_named_as_what_it_is(tmp_path, capsys):
+    """Refused by its own name without --as-path; with it, report.json says what the scene asked
+    for and the depth comes from the volpath inside."""
+    scene = tmp_path / "fog.xml"
+    scene.write_text("""<scene version="3.0.0">
+        <integrator type="moment"><integrator type="volpath"><integer name="max_depth" value="3"/></integrator></integrator>
+        <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/>
+        </film></sensor><emitter type="constant"/>
+        <shape type="rectangle"><transform name="to_world"><translate z="3"/></transform></shape></scene>""")
+    assert main(["compare", str(scene), "--out", str(tmp_path / "no"), "--no-progress"]) == 2
+    assert "moment(volpath)" in _err(capsys)
+    assert main(["compare", str(scene), "--out", str(tmp_path / "cmp"), "--as-path", "--spp", "4",
+                 "--no-progress"]) == 0
+    rep = json.loads((tmp_path / "cmp" / "report.json").read_text())
+    assert rep["scene_integrator"] == "moment(volpath)" and rep["integrator"]["max_depth"] == 3, rep["integrator"]

@@ -1,0 +1,71 @@
+"""Scenes whose integrator is an `aov` or `moment` wrapper around `path`: kept on both sides (stock's path inside on one, our layerbvh on the other), compared on their radiance, the wrapper's own channels from our hits."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from layerbvh_mitsuba import testing
+from layerbvh_mitsuba.ab import metrics
+from layerbvh_mitsuba.ab.compare import CompareSettings, compare
+from layerbvh_mitsuba.ab.render import path_settings, render_passes, use_variant
+from layerbvh_mitsuba.cli import main
+from layerbvh_mitsuba.runtime.settings import Traversal
+
+CBOX = Path(__file__).resolve().parents[2] / "scenes" / "cbox.xml"
+PATH = '<integrator type="path">\n        <integer name="max_depth" value="$max_depth"/>\n    </integrator>'
+WRAPPED = {
+    "moment": f'<integrator type="moment">{PATH}</integrator>',
+    "aov": f'<integrator type="aov"><string name="aovs" value="dd.y:depth,nn:sh_normal"/>{PATH}</integrator>',
+    "moment_aov": f'<integrator type="moment"><integrator type="aov"><string name="aovs" value="dd.y:depth"/>'
+                  f'{PATH}</integrator></integrator>',
+}
+NAMES = {"moment": "moment(path)", "aov": "aov(path)", "moment_aov": "moment(aov(path))"}
+
+
+def _scene(tmp_path, wrapper: str) -> Path:
+    text = CBOX.read_text()
+    assert PATH in text
+    out = tmp_path / f"cbox_{wrapper}.xml"
+    out.write_text(text.replace(PATH, WRAPPED[wrapper]))
+    return out
+
+
+@pytest.mark.parametrize("wrapper", list(WRAPPED))
+def test_a_wrapped_path_scene_compares_with_its_wrapper_on_both_sides(tmp_path, wrapper, layer_path_ran):
+    """No --as-path: both sides keep the wrapper; our layerbvh ran inside it (its statistics, the
+    layer path at treelet height 2) and its radiance is stock's, same seed."""
+    c = compare(use_variant(), CompareSettings(scene=_scene(tmp_path, wrapper), res=(32, 32), spp=8,
+                                                       traversal=Traversal.parse("layer_sorted"), treelet_height=2))
+    assert c.path.wrapper is not None and c.path.scene_integrator == NAMES[wrapper]
+    assert c.info()["compared_as"] == NAMES[wrapper] and c.path.props["max_depth"] == 8
+    assert c.verdict.label == metrics.SAME_PATHS, c.verdict.summary()
+    layer_path_ran(c.stats, "layer_sorted")
+
+
+def test_the_wrappers_own_channels_come_from_our_hits(tmp_path):
+    """`layerbvh render` of an aov(path) scene writes the wrapper's channels (depth, normals) as
+    stock's own integrator does, from our hits: they equal stock's at the same seed."""
+    scene_path = _scene(tmp_path, "aov")
+    out = tmp_path / "ours.exr"
+    assert main(["render", str(scene_path), "--res", "24", "24", "--spp", "4", "--traversal", "per_ray", "-o",
+                 str(out), "--no-progress"]) == 0
+    ours = np.array(mi.Bitmap(str(out)), np.float32)
+    mi_ = use_variant()
+    scene = testing.load(scene_path, (24, 24))
+    stock, _ = render_passes(mi_, scene, scene.integrator(), 4, 0, "stock", False)
+    assert ours.shape == stock.shape and ours.shape[-1] == 7, (ours.shape, stock.shape)  # RGB, depth, normal
+    extra = ours[..., 3:] - stock[..., 3:]
+    assert np.mean(np.abs(extra).max(-1) <= 1e-3) >= 0.999, np.abs(extra).max()
+    assert metrics.same_seed_verdict(stock, ours)["passed"]
+
+
+def test_a_wrapper_around_anything_but_path_is_still_refused(tmp_path):
+    text = CBOX.read_text().replace(PATH, '<integrator type="moment"><integrator type="direct"/></integrator>')
+    scene_path = tmp_path / "direct.xml"
+    scene_path.write_text(text)
+    mi_ = use_variant()
+    with pytest.raises(Exception, match=r"moment\(direct\)"):
+        path_settings(mi_, testing.load(scene_path, (8, 8)), scene_path=scene_path)
