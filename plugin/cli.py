@@ -155,8 +155,7 @@ def cmd_render(mi, args) -> int:
     scene = load_scene(mi, args.scene, s.res)
     spp = s.spp or scene_spp(scene)
     path = path_settings(mi, scene, args.as_path, args.scene)
-    props = path.props
-    integ = load_integrator(mi, ours_props(s, props))
+    integ = load_integrator(mi, ours_props(s, path))
     check_memory_for(scene, spp, integ)  # builds the BVH (and refuses unsupported shapes) first
     # In the scene's aov/moment wrapper where it has one: the EXR holds the wrapper's channels too.
     img, secs = render_passes(mi, scene, wrapped(mi, path, integ), spp, args.seed, "layerbvh", not args.no_progress)
@@ -165,7 +164,7 @@ def cmd_render(mi, args) -> int:
     write_exr(args.output, img)
     st = integ.last_stats
     if args.heatmap:
-        counted = load_integrator(mi, ours_props(s, props, stats=True))
+        counted = load_integrator(mi, ours_props(s, path, stats=True))
         render_passes(mi, scene, wrapped(mi, path, counted), min(spp, STATS_SPP), args.seed, "heat maps",
                       not args.no_progress)
         stem = str(Path(args.output).with_suffix(""))

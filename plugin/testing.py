@@ -9,7 +9,7 @@ import numpy as np
 from layerbvh_mitsuba.ab import metrics
 from layerbvh_mitsuba.ab.compare import CompareSettings, Comparison, compare, ours_props as ours_props_of
 from layerbvh_mitsuba.ab.metrics import SAME_SEED_MAX_MEAN_REL, SAME_SEED_MIN_FRAC, SAME_SEED_TOL, same_seed_verdict
-from layerbvh_mitsuba.ab.render import load_scene, path_props, use_variant, write_exr
+from layerbvh_mitsuba.ab.render import load_scene, path_settings, use_variant, write_exr
 from layerbvh_mitsuba.ab.report import write_comparison
 from layerbvh_mitsuba.ab.verdict import StatisticalStep, Verdict, independent_seed_test
 from layerbvh_mitsuba.runtime.cache import cache_dir
@@ -94,9 +94,9 @@ def independent_seeds_vs_stock(scene_path, spp=4096, res=(6, 6), traversal="per_
     `ours_stats` is ours' last_stats."""
     mi = use_variant()
     s = settings(scene_path, spp, res, 0, traversal, ours_props, params)
-    props = path_props(mi, load(scene_path, res, **params))
-    ours = {k: v for k, v in ours_props_of(s, props).items() if k != "type"}
-    return independent_seed_test(mi, scene_path, tuple(res), spp, props, ours, dict(params), modify)
+    path = path_settings(mi, load(scene_path, res, **params), True, scene_path, params)
+    return independent_seed_test(mi, scene_path, tuple(res), spp, path.stock_inner(), ours_props_of(s, path),
+                                 dict(params), modify)
 
 
 def assert_statistically_matches_stock(scene_path, **kw) -> StatisticalStep:

@@ -166,10 +166,11 @@ class Comparison:
                 f"{100 * m['frac_pixels_over_1e-3']:.3f}%")
 
 
-def ours_props(s: CompareSettings, path_props: dict, traversal: Traversal | None = None, stats: bool = False) -> dict:
-    """The layerbvh integrator's properties for these settings and path settings."""
-    return {"type": "layerbvh", "traversal": (traversal or s.traversal).name, "treelet_height": s.treelet_height,
-            "branching": s.branching, "stats": stats, **path_props,
+def ours_props(s: CompareSettings, path: PathSettings, traversal: Traversal | None = None, stats: bool = False) -> dict:
+    """Our integrator's properties (the one standing in for the scene's estimator) for these
+    settings and the scene's."""
+    return {"type": path.ours_type, "traversal": (traversal or s.traversal).name, "treelet_height": s.treelet_height,
+            "branching": s.branching, "stats": stats, **path.props,
             **({} if s.leaf_size is None else {"leaf_size": s.leaf_size}), **s.ours_props}
 
 
@@ -207,7 +208,7 @@ def _cached_stock(mi, s: CompareSettings, scene, scene_path: Path, path: PathSet
     size = [int(x) for x in scene.sensors()[0].film().crop_size()]
     key = {"resolution": size, "integrator": path.props, "variant": mi.variant(), "params": dict(s.params),
            "versions": {"mitsuba": mitsuba.__version__, "layerbvh": layerbvh.__version__},
-           **({"stock": path.integrator({"type": "path", **path.props})} if path.wrapper else {})}
+           **({"stock": path.integrator(path.stock_inner())} if path.wrapper or path.estimator != "path" else {})}
     t0 = time.perf_counter()
     img, info = cached_stock(mi, scene, scene_path, key, spp, s.seed, s.stock_cache, "stock", s.progress)
     cached = bool(info.get("cached"))
@@ -235,8 +236,7 @@ def compare(mi, s: CompareSettings, scene=None) -> Comparison:
     path = path_settings(mi, scene, s.as_path, scene_path, s.params)
     if s.path_overrides:
         path.props.update(s.path_overrides)
-    props = path.props
-    ours_all = ours_props(s, props)
+    ours_all = ours_props(s, path)
     ours_scene = scene
     if s.ours_modify is not None:
         ours_scene = _stage(OURS, "load", lambda: load_modified(mi, scene_path, res, s.params, s.ours_modify))
@@ -254,13 +254,13 @@ def compare(mi, s: CompareSettings, scene=None) -> Comparison:
     if s.stock_cache is not None:
         stock_img, stock_time = _stage(STOCK, "render", lambda: _cached_stock(mi, s, scene, scene_path, path, spp))
     else:
-        stock_int = _stage(STOCK, "setup", lambda: load_integrator(mi, path.integrator({"type": "path", **props})))
+        stock_int = _stage(STOCK, "setup", lambda: load_integrator(mi, path.integrator(path.stock_inner())))
         r = _stage(STOCK, "render", lambda: timed_render(mi, scene, stock_int, spp, s.seed, "stock path", s.progress))
         stock_img, stock_time = r.image, SideTime.of(r)
     control_time = None
     if s.control and not s.traversal.control:
         ctl = _stage(OURS, "setup", lambda: wrapped(mi, path, load_integrator(
-            mi, ours_props(s, props, Traversal.parse(EMBREE)))))
+            mi, ours_props(s, path, Traversal.parse(EMBREE)))))
         control_time = SideTime.of(_stage(OURS, "render", lambda: timed_render(
             mi, ours_scene, ctl, spp, s.seed, "layerbvh loop + Embree", s.progress)))
     r = _stage(OURS, "render", lambda: timed_render(mi, ours_scene, ours_render, spp, s.seed, "layerbvh", s.progress,
@@ -270,7 +270,7 @@ def compare(mi, s: CompareSettings, scene=None) -> Comparison:
     counted = counted_time = None
     heatmaps = {}
     if s.statistics_pass:  # counters cost time: a pass of their own, reported apart
-        cint = _stage(OURS, "setup", lambda: load_integrator(mi, ours_props(s, props, stats=True)))
+        cint = _stage(OURS, "setup", lambda: load_integrator(mi, ours_props(s, path, stats=True)))
         cr = _stage(OURS, "render", lambda: timed_render(mi, ours_scene, wrapped(mi, path, cint), min(spp, STATS_SPP),
                                                          s.seed, "statistics pass", s.progress, calibrated=cint))
         counted, counted_time, heatmaps = cint.last_stats, SideTime.of(cr), cint.heatmaps(ours_scene)
@@ -282,9 +282,9 @@ def compare(mi, s: CompareSettings, scene=None) -> Comparison:
             f"image shapes {list(stock_img.shape)} (stock) and {list(ours_img.shape)} (ours) differ"))
     stock_img, bad_stock = _finite(stock_img)
     ours_img, bad_ours = _finite(ours_img)
-    verdict_props = {k: v for k, v in ours_all.items() if k != "type"}
     if s.statistical_step:
-        verdict = judge(mi, scene_path, stock_img, ours_img, spp, props, verdict_props, dict(s.params), s.ours_modify)
+        verdict = judge(mi, scene_path, stock_img, ours_img, spp, path.stock_inner(), ours_all, dict(s.params),
+                        s.ours_modify)
     else:
         verdict = same_seed_only(stock_img, ours_img)
     h, w = stock_img.shape[:2]

@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from layerbvh_mitsuba.atomic import atomic_path
 from layerbvh_mitsuba.runtime.compile_clock import CompileClock
+from layerbvh_mitsuba.runtime.registry import STANDS_IN_FOR
 
 DEFAULT_VARIANT = "llvm_ad_rgb"  # Embree on the CPU, the same threads as our LLVM backend
 SPP_PER_PASS = 64  # a progress bar step; one pass (the exact seed) whenever spp <= this
@@ -128,6 +129,7 @@ INTEGRATOR_PLUGINS = {
     "PRBIntegrator": "prb", "LayerBVHIntegrator": "layerbvh",
 }
 WRAPPERS = ("aov", "moment", "stokes")  # integrators that run others and add channels
+ESTIMATORS = tuple(STANDS_IN_FOR)  # Mitsuba's integrators ours mirror: path, direct
 
 
 def _plugin(cls: str) -> str:
@@ -192,14 +194,15 @@ class Wrapper:
 
     type: str                        # "aov" | "moment"
     props: tuple = ()                # its own properties as (name, value) pairs (aov: aovs)
-    inner: "Wrapper | None" = None   # a wrapper it wraps, else it wraps the path tracer itself
+    inner: "Wrapper | None" = None   # a wrapper it wraps, else it wraps the estimator itself
+    leaf: str = "path"               # the estimator inside: "path" | "direct"
 
     def wrap(self, inner) -> dict:
         return {"type": self.type, **dict(self.props), "inner": inner if self.inner is None else self.inner.wrap(inner)}
 
     @property
     def name(self) -> str:
-        return f"{self.type}({'path' if self.inner is None else self.inner.name})"
+        return f"{self.type}({self.leaf if self.inner is None else self.inner.name})"
 
 
 def _substituted(value: str | None, defaults: dict) -> str | None:
@@ -207,8 +210,8 @@ def _substituted(value: str | None, defaults: dict) -> str | None:
 
 
 def _xml_wrapper(el, defaults: dict) -> tuple[Wrapper | None, dict]:
-    """(the wrapper, the inner path's XML properties) of an <integrator> element, or (None, {})
-    when it is not aov/moment around exactly one path tracer with properties we know."""
+    """(the wrapper, the inner estimator's XML boolean properties) of an <integrator> element, or
+    (None, {}) when it is not aov/moment around exactly one of ESTIMATORS with properties we know."""
     kind = _substituted(el.get("type"), defaults)
     if kind not in ("aov", "moment"):
         return None, {}
@@ -222,11 +225,12 @@ def _xml_wrapper(el, defaults: dict) -> tuple[Wrapper | None, dict]:
             return None, {}
     if len(inner) != 1:
         return None, {}
-    if _substituted(inner[0].get("type"), defaults) == "path":
+    leaf = _substituted(inner[0].get("type"), defaults)
+    if leaf in ESTIMATORS:
         path = {c.get("name"): _substituted(c.get("value"), defaults) for c in inner[0] if c.tag == "boolean"}
-        return Wrapper(kind, tuple(props)), path
+        return Wrapper(kind, tuple(props), leaf=leaf), path
     nested, path = _xml_wrapper(inner[0], defaults)
-    return (None, {}) if nested is None else (Wrapper(kind, tuple(props), nested), path)
+    return (None, {}) if nested is None else (Wrapper(kind, tuple(props), nested, leaf=nested.leaf), path)
 
 
 def scene_wrapper(scene_path, params: dict | None = None) -> tuple[Wrapper | None, dict]:
@@ -245,9 +249,12 @@ def scene_wrapper(scene_path, params: dict | None = None) -> tuple[Wrapper | Non
 
 @dataclass
 class PathSettings:
-    """The `path` settings both sides of a comparison render with, and where they come from.
+    """The settings both sides of a comparison render with, and where they come from.
 
-    `props`: max_depth, rr_depth, hide_emitters (only those the scene sets). `scene_integrator`:
+    `estimator`: the scene's estimator, `path` or `direct` (ours stands in for it:
+    runtime.registry.STANDS_IN_FOR). `props`: its settings (path: max_depth, rr_depth,
+    hide_emitters; direct: emitter_samples, bsdf_samples, hide_emitters; only those the scene
+    sets). `scene_integrator`:
     the scene's integrator (`integrator_name`). `wrapper`: the scene's `aov`/`moment` around its
     path tracer, kept on both sides (stock's path inside on one, our layerbvh on the other).
     `as_path`: the scene's integrator is neither path nor such a wrapper and the user asked to
@@ -258,6 +265,16 @@ class PathSettings:
     as_path: bool = False
     note: str = ""
     wrapper: Wrapper | None = None
+    estimator: str = "path"
+
+    def stock_inner(self) -> dict:
+        """Stock's estimator (inside the wrapper, where there is one)."""
+        return {"type": self.estimator, **self.props}
+
+    @property
+    def ours_type(self) -> str:
+        """The plugin of ours that stands in for the scene's estimator."""
+        return STANDS_IN_FOR[self.estimator]
 
     def integrator(self, inner):
         """What a side renders: `inner` (a path or layerbvh dict or object), in the scene's
@@ -266,17 +283,21 @@ class PathSettings:
 
     @property
     def compared_as(self) -> str:
-        return self.wrapper.name if self.wrapper else "path" + (" (--as-path)" if self.as_path else "")
+        if self.wrapper:
+            return self.wrapper.name
+        return self.estimator + (" (--as-path)" if self.as_path else "")
 
 
-SUPPORTED = "path, and aov or moment around path"
+SUPPORTED = "path, direct, and aov or moment around either"
 
 
 def path_settings(mi, scene, as_path: bool = False, scene_path=None, params: dict | None = None) -> PathSettings:
-    """The scene's own path settings (max_depth, rr_depth, hide_emitters, read from its integrator
-    object). An `aov`/`moment` wrapper around path (read from `scene_path`'s XML with its
-    `params`) is kept (`wrapper`). Any other integrator is refused (UserError) unless `as_path`:
-    then its settings are read where it has them (a wrapper's inner integrator, volpath's depths)."""
+    """The scene's own estimator and its settings, read from its integrator object: `path`
+    (max_depth, rr_depth, hide_emitters) or `direct` (emitter_samples, bsdf_samples,
+    hide_emitters), and an `aov`/`moment` wrapper around either (read from `scene_path`'s XML with
+    its `params`), kept as `wrapper`. Any other integrator is refused (UserError) unless
+    `as_path`: then it is compared as path, its settings read where it has them (a wrapper's inner
+    integrator, volpath's depths)."""
     integ = scene.integrator()
     if integ is None:
         return PathSettings({}, "path")
@@ -284,21 +305,25 @@ def path_settings(mi, scene, as_path: bool = False, scene_path=None, params: dic
     wrapper, inner_xml = scene_wrapper(scene_path, params) if scene_path is not None else (None, {})
     if wrapper is not None and wrapper.name != name:
         wrapper = None  # the XML's first <integrator> is not the one loaded (an include): not read
-    if name != "path" and wrapper is None and not as_path:
+    own = name in ESTIMATORS
+    if not own and wrapper is None and not as_path:
         raise UserError(f"the scene's integrator is {name}: layerbvh renders {SUPPORTED}, so both sides would "
                         f"render something else than the scene asks; pass --as-path to compare them rendered with "
                         f"path")
+    estimator = name if own else wrapper.leaf if wrapper is not None else "path"
     inner = inner_integrator_text(integ)
-    props = {k: v for k in ("max_depth", "rr_depth") if (v := _int_setting(inner, k)) is not None}
-    if name == "path" or name == "volpath":
+    keys = ("emitter_samples", "bsdf_samples") if estimator == "direct" else ("max_depth", "rr_depth")
+    props = {k: v for k in keys if (v := _int_setting(inner, k)) is not None}
+    if own or name == "volpath":
         props["hide_emitters"] = bool(integ.hide_emitters)
     elif wrapper is not None and "hide_emitters" in inner_xml:
         props["hide_emitters"] = inner_xml["hide_emitters"].lower() == "true"
     note = ""
-    if name != "path" and wrapper is None:
+    if not own and wrapper is None:
         shown = ", ".join(f"{k}={v}" for k, v in props.items()) or "path's defaults"
         note = f"the scene's integrator is {name}; both sides rendered with path ({shown})"
-    return PathSettings(props, name, as_path=name != "path" and wrapper is None, note=note, wrapper=wrapper)
+    return PathSettings(props, name, as_path=not own and wrapper is None, note=note, wrapper=wrapper,
+                        estimator=estimator)
 
 
 def path_props(mi, scene) -> dict:

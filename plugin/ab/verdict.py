@@ -114,17 +114,18 @@ def pixel_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarra
     return v.mean(2), v.var(2, ddof=1)
 
 
-def independent_seed_test(mi, scene_path, res: tuple[int, int], spp: int, stock_props: dict, ours_props: dict,
+def independent_seed_test(mi, scene_path, res: tuple[int, int], spp: int, stock: dict, ours: dict,
                           params: dict | None = None, ours_modify=None) -> StatisticalStep:
-    """Stock `path` and layerbvh at independent seeds (STOCK_SEED, OURS_SEED) on the scene at film
+    """Stock's estimator and ours (integrator dicts: `path` and `layerbvh`, or `direct` and
+    `layerbvh_direct`) at independent seeds (STOCK_SEED, OURS_SEED) on the scene at film
     `res`, `spp` camera samples per pixel a side (`pixel_moments`), then metrics.pixel_test
     (Welch, Šidák-corrected at metrics.Z_ALPHA). `ours_modify(params)` changes ours' copy of the
     scene (negative controls)."""
     t0 = time.perf_counter()
     scene = load_scene(mi, str(scene_path), res, **(params or {}))
     ours_scene = scene if ours_modify is None else load_modified(mi, scene_path, res, params, ours_modify)
-    stock = load_integrator(mi, {"type": "path", **stock_props})
-    ours = load_integrator(mi, {"type": "layerbvh", **ours_props})
+    stock = load_integrator(mi, stock)
+    ours = load_integrator(mi, ours)
     ref_mean, ref_var = pixel_moments(mi, scene, stock, spp, STOCK_SEED)
     mean, var = pixel_moments(mi, ours_scene, ours, spp, OURS_SEED)
     summary, passing = metrics.pixel_test(ref_mean, ref_var, mean, var, spp, spp, alpha=metrics.Z_ALPHA, student=True)
@@ -133,21 +134,21 @@ def independent_seed_test(mi, scene_path, res: tuple[int, int], spp: int, stock_
                            seconds=time.perf_counter() - t0, passing=passing, ours_stats=ours.last_stats)
 
 
-def statistical_step(mi, scene_path, size: tuple[int, int], samples: int, stock_props: dict, ours_props: dict,
+def statistical_step(mi, scene_path, size: tuple[int, int], samples: int, stock: dict, ours: dict,
                      params: dict | None = None, ours_modify=None) -> StatisticalStep:
     """Step 2: `independent_seed_test` on the scene's film shrunk to metrics.z_test_film(size),
     about Z_SAMPLE_SHARE x `samples` camera samples per side (metrics.z_test_spp)."""
     return independent_seed_test(mi, scene_path, metrics.z_test_film(*size), metrics.z_test_spp(*size, samples),
-                                 stock_props, ours_props, params, ours_modify)
+                                 stock, ours, params, ours_modify)
 
 
-def judge(mi, scene_path, stock_img: np.ndarray, ours_img: np.ndarray, spp: int, stock_props: dict,
-          ours_props: dict, params: dict | None = None, ours_modify=None) -> Verdict:
+def judge(mi, scene_path, stock_img: np.ndarray, ours_img: np.ndarray, spp: int, stock: dict,
+          ours: dict, params: dict | None = None, ours_modify=None) -> Verdict:
     """Both steps for same-seed images of `scene_path` (film of their size, `spp` spp): step 2
     runs only where step 1 fails, at about the same number of samples per side."""
     s = metrics.same_seed_verdict(stock_img, ours_img)
     if s["passed"]:
         return Verdict(metrics.SAME_PATHS, s)
     h, w = stock_img.shape[:2]
-    z = statistical_step(mi, scene_path, (w, h), w * h * spp, stock_props, ours_props, params, ours_modify)
+    z = statistical_step(mi, scene_path, (w, h), w * h * spp, stock, ours, params, ours_modify)
     return Verdict(metrics.verdict_label(False, z.pass_fraction), s, z)

@@ -447,38 +447,3 @@ class LayerBVHPathTracer:
     def to_string(self):
         return (f"LayerBVHIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
                 f"traversal={self.traversal}, branching={self.branching}, treelet_height={self.treelet_height}]")
-
-
-# -- registration, once per variant ------------------------------------------------------------------
-
-_classes: dict[str, type] = {}
-
-
-def is_jit_variant(variant: str | None) -> bool:
-    return bool(variant) and variant.split("_", 1)[0] in ("llvm", "cuda")
-
-
-def integrator_class() -> type:
-    """The LayerBVHIntegrator class of the active variant: that variant's mi.SamplingIntegrator
-    with LayerBVHPathTracer's methods."""
-    variant = mi.variant()
-    if not is_jit_variant(variant):
-        raise ValueError(f"the layerbvh integrator needs a JIT variant (llvm_* or cuda_*); the active variant is "
-                         f"{variant}")
-    cls = _classes.get(variant)
-    if cls is None:
-        methods = {k: v for k, v in vars(LayerBVHPathTracer).items() if k not in ("__dict__", "__weakref__")}
-        base = mi.SamplingIntegrator
-        cls = _classes[variant] = type("LayerBVHIntegrator", (base,), {**methods, "_base": base})
-    return cls
-
-
-def _make(props):
-    return integrator_class()(props)
-
-
-def register(variant: str | None = None) -> None:
-    """Register `layerbvh` with the active Mitsuba variant (a scalar variant gets a factory that
-    refuses by name: our traversal runs on Dr.Jit's JIT backends only)."""
-    if (variant or mi.variant()) is not None:
-        mi.register_integrator("layerbvh", _make)

@@ -17,7 +17,7 @@ from tqdm import tqdm
 import layerbvh
 from layerbvh_mitsuba import atomic
 from layerbvh_mitsuba.ab import metrics
-from layerbvh_mitsuba.ab.render import load_integrator, load_scene, path_settings, timed_render
+from layerbvh_mitsuba.ab.render import PathSettings, load_integrator, load_scene, path_settings, timed_render
 from layerbvh_mitsuba.ab.stock_cache import cached_stock
 from layerbvh_mitsuba.runtime.cache import cache_dir
 from layerbvh_mitsuba.runtime.settings import CHOICES, EMBREE, Traversal
@@ -108,18 +108,19 @@ def _seed(config_index: int, level: int) -> int:
     return 1 + 1000 * config_index + (level + 1)
 
 
-def _integrator(mi, cfg: Config, props: dict, build: dict):
-    """The configuration's integrator; `build` holds the BVH's leaf_size and branching."""
+def _integrator(mi, cfg: Config, path: PathSettings, build: dict):
+    """The configuration's integrator (the scene's estimator: stock's, or ours standing in for
+    it); `build` holds the BVH's leaf_size and branching."""
     if cfg.stock:
-        return load_integrator(mi, {"type": "path", **props})
-    return load_integrator(mi, {"type": "layerbvh", "traversal": cfg.traversal, "treelet_height": cfg.treelet_height,
-                         **build, **props})
+        return load_integrator(mi, path.stock_inner())
+    return load_integrator(mi, {"type": path.ours_type, "traversal": cfg.traversal, "treelet_height": cfg.treelet_height,
+                                **build, **path.props})
 
 
-def run_config(mi, scene, cfg: Config, index: int, props: dict, ref: np.ndarray, budget: float,
+def run_config(mi, scene, cfg: Config, index: int, path: PathSettings, ref: np.ndarray, budget: float,
                max_spp: int, build: dict, bar) -> None:
     """Render at doubling spp while the next render (predicted: twice the last) fits in the budget."""
-    integ = _integrator(mi, cfg, props, build)
+    integ = _integrator(mi, cfg, path, build)
     tracer = None if cfg.stock else integ.tracer(scene)  # built once here, outside every timed render
     cfg.build_s = tracer.build_s if tracer is not None else 0.0
     # Warm-up with its own seed: most kernels compile here; any later compile is subtracted too.
@@ -415,7 +416,8 @@ def run(mi, s: ConvergeSettings) -> dict:
     props = path.props
     size = [int(x) for x in scene.sensors()[0].film().crop_size()]
     settings = {"ref_spp": s.ref_spp, "resolution": size, "variant": mi.variant(), "mitsuba": mi.__version__,
-                "integrator": props, "seed": REFERENCE_SEED}
+                "integrator": props, "seed": REFERENCE_SEED,
+                **({"stock": path.stock_inner()} if path.estimator != "path" else {})}
     progress = s.progress
     ref, ref_info = reference(mi, scene, scene_path, settings, Path(s.cache or cache_dir("references")), progress)
     if progress:
@@ -423,7 +425,7 @@ def run(mi, s: ConvergeSettings) -> dict:
     renders = len(configs) * (int(math.log2(max_spp)) + 1)
     with tqdm(total=renders, desc="converge", unit="render", disable=not progress, file=sys.stderr) as bar:
         for i, cfg in enumerate(configs):
-            run_config(mi, scene, cfg, i, props, ref, s.budget, max_spp,
+            run_config(mi, scene, cfg, i, path, ref, s.budget, max_spp,
                        {"branching": s.branching, **({} if s.leaf_size is None else {"leaf_size": s.leaf_size})},
                        bar)
             cfg.fit = fits(cfg)

@@ -1,4 +1,4 @@
-"""Scenes whose integrator is an `aov` or `moment` wrapper around `path`: kept on both sides (stock's path inside on one, our layerbvh on the other), compared on their radiance, the wrapper's own channels from our hits."""
+"""Scenes whose integrator is an `aov` or `moment` wrapper around `path` or `direct`: kept on both sides (stock's estimator inside on one, ours on the other), compared on their radiance, the wrapper's own channels from our hits."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -21,8 +21,10 @@ WRAPPED = {
     "aov": f'<integrator type="aov"><string name="aovs" value="dd.y:depth,nn:sh_normal"/>{PATH}</integrator>',
     "moment_aov": f'<integrator type="moment"><integrator type="aov"><string name="aovs" value="dd.y:depth"/>'
                   f'{PATH}</integrator></integrator>',
+    "moment_direct": '<integrator type="moment"><integrator type="direct"/></integrator>',
 }
-NAMES = {"moment": "moment(path)", "aov": "aov(path)", "moment_aov": "moment(aov(path))"}
+NAMES = {"moment": "moment(path)", "aov": "aov(path)", "moment_aov": "moment(aov(path))",
+         "moment_direct": "moment(direct)"}
 
 
 def _scene(tmp_path, wrapper: str) -> Path:
@@ -40,7 +42,8 @@ def test_a_wrapped_path_scene_compares_with_its_wrapper_on_both_sides(tmp_path, 
     c = compare(use_variant(), CompareSettings(scene=_scene(tmp_path, wrapper), res=(32, 32), spp=8,
                                                        traversal=Traversal.parse("layer_sorted"), treelet_height=2))
     assert c.path.wrapper is not None and c.path.scene_integrator == NAMES[wrapper]
-    assert c.info()["compared_as"] == NAMES[wrapper] and c.path.props["max_depth"] == 8
+    assert c.info()["compared_as"] == NAMES[wrapper]
+    assert c.path.props.get("max_depth", 8) == 8 and c.path.estimator == NAMES[wrapper].rstrip(")").split("(")[-1]
     assert c.verdict.label == metrics.SAME_PATHS, c.verdict.summary()
     layer_path_ran(c.stats, "layer_sorted")
 
@@ -62,10 +65,10 @@ def test_the_wrappers_own_channels_come_from_our_hits(tmp_path):
     assert metrics.same_seed_verdict(stock, ours)["passed"]
 
 
-def test_a_wrapper_around_anything_but_path_is_still_refused(tmp_path):
-    text = CBOX.read_text().replace(PATH, '<integrator type="moment"><integrator type="direct"/></integrator>')
-    scene_path = tmp_path / "direct.xml"
+def test_a_wrapper_around_anything_but_path_or_direct_is_still_refused(tmp_path):
+    text = CBOX.read_text().replace(PATH, '<integrator type="moment"><integrator type="volpath"/></integrator>')
+    scene_path = tmp_path / "volpath.xml"
     scene_path.write_text(text)
     mi_ = use_variant()
-    with pytest.raises(Exception, match=r"moment\(direct\)"):
+    with pytest.raises(Exception, match=r"moment\(volpath\)"):
         path_settings(mi_, testing.load(scene_path, (8, 8)), scene_path=scene_path)
