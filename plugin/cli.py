@@ -40,9 +40,9 @@ from layerbvh_mitsuba.tools import converge
 from layerbvh_mitsuba.tools.bench import locality
 from layerbvh_mitsuba.tools.sweep import grid as sweep
 
-AS_PATH_HELP = ("the scene's integrator is not path (volpath, direct, a moment/aov wrapper, ...): render both sides "
-                "with path anyway, with the settings read from it where it has them (without this, such a scene "
-                "is refused)")
+AS_PATH_HELP = ("the scene's integrator is none of path, direct or an aov/moment wrapper around them (volpath, "
+                "volpathmis, prb, ...): render both sides with path anyway, with the settings read from it where it "
+                "has them (without this, such a scene is refused)")
 
 
 def _parser() -> argparse.ArgumentParser:

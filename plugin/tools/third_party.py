@@ -1,4 +1,4 @@
-"""A/B check on third-party scenes: stock `path` vs the `layerbvh` integrator, same seed, each scene a point of a `layerbvh sweep` (its own process).
+"""A/B check on third-party scenes: stock against ours in the scene's own integrator (path, direct, aov/moment around them; any other as path), same seed, each scene a point of a `layerbvh sweep` (its own process).
 
 For every scene found under --root (default ../shared/assets relative to the repository root) it
 loads the scene with the project's loader (film resized to --res) and runs the one A/B comparison
@@ -176,6 +176,7 @@ def run_worker(args) -> dict:
     if note:
         rec["notes"].append(note)
     rec["integrator"] = {**path.props, **overrides}
+    rec["compared_as"] = path.compared_as
     sensor = scene.sensors()[0]
     rec["sensor"] = sensor.class_name()
     rec["resolution"] = [int(x) for x in sensor.film().crop_size()]
@@ -273,18 +274,20 @@ def _fmt(x, spec):
 
 def _markdown(cmdline: str, args, rows, missing, total: str) -> str:
     lines = [f"`{cmdline}`", "",
-             f"Stock `path` vs `layerbvh` (traversal `{args.traversal}`), same seed {args.seed}, "
+             f"Stock vs ours (traversal `{args.traversal}`) in the scene's own integrator where ours mirrors it "
+             f"(`path`, `direct`, an `aov`/`moment` wrapper around them: ours inside), any other compared as path "
+             f"(the notes say so); same seed {args.seed}, "
              f"{args.spp} spp, {args.res[0]}x{args.res[1]}, variant `{args.variant}`, root `{_shown(args.root)}`. "
              f"within 1e-3 = share of pixels whose every channel differs by <= 1e-3; FLIP/rel_mse from "
              f"`metrics.compare_images`; rays: of --check-rays random rays through the scene's triangles, how many "
              f"get another triangle from ours than from Embree, and in brackets how many of those are ties: both "
              f"triangles at the same distance (float64) up to float32 resolution of the coordinates (shared edges, coplanar "
-             f"overlapping triangles), where either answer is right; seconds are `cli.render_passes` wall time and include LLVM JIT compilation (Dr.Jit caches kernels "
-             f"on disk, so a first run on a cold cache is far slower) and, with several sweep workers on one machine, "
-             f"scenes rendering side by side on its cores.", "",
-             "| scene | triangles | other shapes | result | within 1e-3 | mean abs | max abs | FLIP mean "
+             f"overlapping triangles), where either answer is right; seconds are each side's render without kernel "
+             f"compilation (`ab.compare`) and, with several sweep workers on one machine, scenes rendering side by "
+             f"side on its cores.", "",
+             "| scene | triangles | other shapes | compared as | result | within 1e-3 | mean abs | max abs | FLIP mean "
              "| rel_mse | rays: other prim (ties) | stock s | ours s | notes |",
-             "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+             "|---|---:|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for r in rows:
         ss, m = r.get("same_seed") or {}, r.get("metrics") or {}
         frac = ss.get("frac_within_1e-3")
@@ -295,7 +298,7 @@ def _markdown(cmdline: str, args, rows, missing, total: str) -> str:
         if result.startswith("refused") and " is not supported" in result:
             result = result[:result.index(" is not supported")] + " is not supported"
         cells = [f"`{r['scene']}`", _fmt(r.get("triangles"), ","), r.get("other_shapes", "-"),
-                 result.replace("|", "\\|"),
+                 r.get("compared_as") or "-", result.replace("|", "\\|"),
                  "-" if frac is None else f"{100 * frac:.2f}%",
                  _fmt(ss.get("mean_abs"), ".2e"), _fmt(ss.get("max_abs"), ".2e"),
                  _fmt(m.get("flip_mean"), ".2e"), _fmt(m.get("rel_mse"), ".2e"), rays,

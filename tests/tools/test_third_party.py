@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -44,10 +45,15 @@ def test_table_has_a_verdict_per_scene_and_names_refused_plugins(tmp_path):
     (root / "instanced.xml").write_text(INSTANCED)
     (root / "curve.xml").write_text(CURVE)
     (root / "curve.txt").write_text("-1 0 0 0.1\n0 0.5 0 0.1\n1 0 0 0.1\n")
-    (root / "cbox.xml").write_text((ROOT / "scenes" / "cbox.xml").read_text())
+    cbox = (ROOT / "scenes" / "cbox.xml").read_text()
+    (root / "cbox.xml").write_text(cbox)
+    # Mitsuba's test scenes wrap their integrator in `moment`; this one wraps `direct`.
+    (root / "direct.xml").write_text(re.sub(r'<integrator type="path">.*?</integrator>',
+                                            '<integrator type="moment"><integrator type="direct"/></integrator>',
+                                            cbox, count=1, flags=re.S))
     md, js = tmp_path / "table.md", tmp_path / "table.json"
     proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "third_party.py"), "--root", str(root),
-                           "--scenes", "cbox.xml", "instanced.xml", "curve.xml", "missing/*.xml", "--res", "16", "16",
+                           "--scenes", "cbox.xml", "direct.xml", "instanced.xml", "curve.xml", "missing/*.xml", "--res", "16", "16",
                            "--spp", "4", "--check-rays", "20000", "--md", str(md), "--json", str(js),
                            "--out", str(tmp_path / "sweep"), "--workers", "2"],
                           capture_output=True, text=True, timeout=600, cwd=ROOT)
@@ -55,6 +61,9 @@ def test_table_has_a_verdict_per_scene_and_names_refused_plugins(tmp_path):
     rows = {r["scene"]: r for r in json.loads(js.read_text())["scenes"]}
     assert rows["cbox.xml"]["result"] == SAME_PATHS, rows["cbox.xml"]
     assert rows["cbox.xml"]["same_seed"]["frac_within_1e-3"] >= 0.999
+    # The scene's own integrator where ours mirrors it: moment(direct) on both sides, ours inside.
+    assert rows["direct.xml"]["compared_as"] == "moment(direct)" and rows["direct.xml"]["result"] == SAME_PATHS, \
+        rows["direct.xml"]
     # The ray check traced real rays, and every disagreement with Embree is a tie (block bottoms on the floor).
     rc = rows["cbox.xml"]["ray_check"]
     assert rc["rays"] == 20000 and rc["other_prim"] == rc["ties"], rc
@@ -64,7 +73,7 @@ def test_table_has_a_verdict_per_scene_and_names_refused_plugins(tmp_path):
     refused = rows["curve.xml"]["result"]
     assert refused.startswith("refused:") and "'linearcurve'" in refused and "hair" in refused
     table = md.read_text()
-    assert "| `cbox.xml` | 36 |" in table and "Not found under root (skipped): `missing/*.xml`" in table
+    assert "| `cbox.xml` | 36 | - | path |" in table and "| moment(direct) |" in table and "Not found under root (skipped): `missing/*.xml`" in table
     assert not list(tmp_path.glob(".*.tmp*")), "temporary files left behind"
     # Each scene was a point of the sweep (its own process), with its row in the sweep's table too.
     sweep_rows = {r["scene"]: r for r in json.loads((tmp_path / "sweep" / "results.json").read_text())["rows"]}
