@@ -233,17 +233,36 @@ def _xml_wrapper(el, defaults: dict) -> tuple[Wrapper | None, dict]:
     return (None, {}) if nested is None else (Wrapper(kind, tuple(props), nested, leaf=nested.leaf), path)
 
 
-def scene_wrapper(scene_path, params: dict | None = None) -> tuple[Wrapper | None, dict]:
-    """The wrapper around a path tracer that the scene file's <integrator> states, read from its
-    XML (an `aov` wrapper's channel list is in its properties, not in the loaded object), and the
-    inner path's boolean properties; (None, {}) for anything else."""
+def _scene_integrator(path: Path, defaults: dict, seen: set):
+    """The first <integrator> of a scene file in document order, <include>d files read where they
+    stand (as Mitsuba merges them); None if there is none or a file cannot be read."""
+    path = path.resolve()
+    if path in seen:
+        return None
+    seen.add(path)
     try:
-        root = ET.parse(scene_path).getroot()
+        root = ET.parse(path).getroot()
     except (OSError, ET.ParseError):
-        return None, {}
-    defaults = {d.get("name"): d.get("value") for d in root.iter("default")}
-    defaults.update({k: str(v).lower() if isinstance(v, bool) else str(v) for k, v in (params or {}).items()})
-    el = root.find("integrator")
+        return None
+    for d in root.iter("default"):
+        defaults.setdefault(d.get("name"), d.get("value"))
+    for el in root:
+        if el.tag == "integrator":
+            return el
+        if el.tag == "include" and el.get("filename"):
+            found = _scene_integrator(path.parent / _substituted(el.get("filename"), defaults), defaults, seen)
+            if found is not None:
+                return found
+    return None
+
+
+def scene_wrapper(scene_path, params: dict | None = None) -> tuple[Wrapper | None, dict]:
+    """The wrapper around one of ESTIMATORS that the scene file's <integrator> states, read from
+    its XML (an `aov` wrapper's channel list is in its properties, not in the loaded object;
+    <include>d files are followed), and the inner estimator's boolean properties; (None, {}) for
+    anything else."""
+    defaults = {k: str(v).lower() if isinstance(v, bool) else str(v) for k, v in (params or {}).items()}
+    el = _scene_integrator(Path(scene_path), defaults, set())
     return (None, {}) if el is None else _xml_wrapper(el, defaults)
 
 

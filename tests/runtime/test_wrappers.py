@@ -72,3 +72,16 @@ def test_a_wrapper_around_anything_but_path_or_direct_is_still_refused(tmp_path)
     mi_ = use_variant()
     with pytest.raises(Exception, match=r"moment\(volpath\)"):
         path_settings(mi_, testing.load(scene_path, (8, 8)), scene_path=scene_path)
+
+
+def test_a_wrapper_from_an_included_file_is_read(tmp_path):
+    """Mitsuba's test scenes state their `moment` wrapper in an <include>d fragment: it is found
+    where it stands, and the comparison keeps it."""
+    (tmp_path / "fragment.xml").write_text('<scene version="3.0.0"><integrator type="moment">'
+                                           '<integrator type="path"><integer name="max_depth" value="3"/>'
+                                           '</integrator></integrator></scene>')
+    scene_path = tmp_path / "main.xml"
+    scene_path.write_text(CBOX.read_text().replace(PATH, '<include filename="fragment.xml"/>'))
+    mi_ = use_variant()
+    path = path_settings(mi_, testing.load(scene_path, (8, 8)), scene_path=scene_path)
+    assert path.wrapper is not None and path.compared_as == "moment(path)" and path.props["max_depth"] == 3
