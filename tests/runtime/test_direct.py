@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import mitsuba as mi
@@ -77,3 +79,29 @@ def test_direct_settings_are_checked_by_name():
         mi.load_dict({"type": "layerbvh_direct", "shading_samples": 2, "emitter_samples": 1})
     with pytest.raises(Exception, match="at least one emitter or BSDF sample"):
         mi.load_dict({"type": "layerbvh_direct", "emitter_samples": 0, "bsdf_samples": 0})
+
+
+def test_direct_matches_stock_in_the_spectral_and_mono_variants(tmp_path):
+    """In its own process (the variant is process-wide): same seed, per_ray and layer_sorted."""
+    scene = _direct(tmp_path, "cbox", "2e3b")
+    code = f"""
+import mitsuba as mi, numpy as np
+for v in ("llvm_ad_spectral", "llvm_ad_mono"):
+    mi.set_variant(v)
+    import layerbvh_mitsuba
+    from layerbvh_mitsuba.ab import metrics
+    scene = mi.load_file({str(scene)!r}, resx=24, resy=24)
+    stock = np.array(mi.render(scene, integrator=mi.load_dict({{"type": "direct", "emitter_samples": 2,
+                                                                 "bsdf_samples": 3}}), spp=8, seed=1))
+    for t in ("per_ray", "layer_sorted"):
+        ours = mi.load_dict({{"type": "layerbvh_direct", "emitter_samples": 2, "bsdf_samples": 3, "traversal": t,
+                              "treelet_height": 2}})
+        img = np.array(mi.render(scene, integrator=ours, spp=8, seed=1))
+        print(v, t, img.shape[-1], metrics.same_seed_verdict(stock, img)["passed"])
+"""
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr[-2000:]
+    lines = re.findall(r"(llvm_\w+) (\w+) (\d) (\w+)", p.stdout)  # (Mitsuba logs there too)
+    assert [(v, t, ok) for v, t, _, ok in lines] == [(v, t, "True") for v in ("llvm_ad_spectral", "llvm_ad_mono")
+                                                     for t in ("per_ray", "layer_sorted")], p.stdout
+    assert [c for _, _, c, _ in lines] == ["3", "3", "1", "1"]  # RGB out of spectral, luminance in mono
