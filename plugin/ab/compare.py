@@ -1,8 +1,9 @@
-"""One A/B comparison: stock Mitsuba (`path`, Embree) against the `layerbvh` integrator on one scene at the same seed, then the two-step verdict. The command line, the sweep, the third-party table, the pytest helpers and the stability suite all run this."""
+"""One A/B comparison: stock Mitsuba (Embree) against ours on one scene, in the scene's own integrator where ours mirrors it (path, direct, aov/moment around them), at the same seed, then the two-step verdict. The command line, the sweep, the third-party table, the pytest helpers and the stability suite all run this."""
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Callable, Mapping
 
@@ -32,8 +33,8 @@ STOCK, OURS = "stock", "ours"
 
 @dataclass(frozen=True)
 class CompareSettings:
-    """What one comparison renders. Ours gets the scene's own path settings (both sides do),
-    then the layerbvh properties below, then `ours_props` on top."""
+    """What one comparison renders. Ours gets the scene's own estimator settings (both sides do),
+    then our integrator's properties below, then `ours_props` on top."""
 
     scene: str | Path
     spp: int | None = None                # None: the scene's sampler's
@@ -100,7 +101,6 @@ class Comparison:
     ours_time: SideTime
     stats: RenderStats              # ours' timed render
     verdict: Verdict
-    metrics: dict                   # metrics.compare_images(stock, ours)
     control_time: SideTime | None = None
     counted: RenderStats | None = None   # the statistics pass
     counted_time: SideTime | None = None
@@ -111,6 +111,16 @@ class Comparison:
     @property
     def passed(self) -> bool:
         return self.verdict.passed
+
+    @cached_property
+    def measured(self) -> tuple[dict, np.ndarray]:
+        """(metrics.compare_images of ours against stock, the ꟻLIP map): measured once, when first
+        asked for (the report and the tables do; the same-seed helpers never pay for ꟻLIP)."""
+        return metrics.compare_images_with_flip_map(self.stock, self.ours)
+
+    @property
+    def metrics(self) -> dict:
+        return self.measured[0]
 
     def split(self) -> dict | None:
         """Our time split by the control: loop (ours with Embree less stock) and traversal (ours
@@ -221,7 +231,8 @@ def wrapped(mi, path: PathSettings, integ):
 
 
 def compare(mi, s: CompareSettings, scene=None) -> Comparison:
-    """Stock `path` and the layerbvh integrator on `s.scene` at the same seed (and, with
+    """Stock's estimator and ours (path_settings: the scene's path or direct, in its wrapper) on
+    `s.scene` at the same seed (and, with
     `s.control`, our loop with Embree's queries between them), timed without kernel compilation
     and auto's calibration; then the verdict (verdict.judge: same seed, and where same-seed paths
     diverged, independent seeds), the image metrics and, with `s.statistics_pass`, a counted pass
@@ -290,6 +301,6 @@ def compare(mi, s: CompareSettings, scene=None) -> Comparison:
     h, w = stock_img.shape[:2]
     return Comparison(settings=s, spp=spp, resolution=(w, h), variant=mi.variant(), path=path, ours_props=ours_all,
                       stock=stock_img, ours=ours_img, nonfinite=(bad_stock, bad_ours), stock_time=stock_time,
-                      ours_time=ours_time, stats=stats, verdict=verdict, metrics=metrics.compare_images(stock_img, ours_img),
+                      ours_time=ours_time, stats=stats, verdict=verdict,
                       control_time=control_time, counted=counted, counted_time=counted_time, heatmaps=heatmaps,
                       scene=scene, integrator=ours)

@@ -121,15 +121,16 @@ REPORT_MARKER = "report.json"  # the file that makes a folder a compare report
 
 
 def write_report(out_dir, stock_img, ours_img, info: dict, heatmaps: dict | None = None,
-                 judged: Verdict | None = None) -> dict:
+                 judged: Verdict | None = None, measured: tuple[dict, np.ndarray] | None = None) -> dict:
     """Write the stock-vs-ours report folder `out_dir` and return the report dict (= report.json).
 
     `judged` is the two-step verdict (verdict.judge); without it only the same-seed step is
-    taken from the images. Written into a temporary sibling folder that then replaces `out_dir`
+    taken from the images. `measured`: the images' metrics and ꟻLIP map where the caller has them
+    (Comparison.measured), else measured here. Written into a temporary sibling folder that then replaces `out_dir`
     whole (atomic.atomic_folder): a crash leaves nothing half-written, and the folder's files
     always come from one run."""
     stock, ours = metrics.as_rgb(stock_img, "stock"), metrics.as_rgb(ours_img, "ours")
-    m, flip_map = metrics.compare_images_with_flip_map(stock, ours)
+    m, flip_map = measured or metrics.compare_images_with_flip_map(stock, ours)
     judged = judged or same_seed_only(stock, ours)
     rep = json_safe({**dict(info), "metrics": m, "verdict": judged.as_dict()})
     with atomic_folder(out_dir, REPORT_MARKER) as tmp:
@@ -153,4 +154,4 @@ def heatmap_png(values: np.ndarray) -> tuple[bytes, float]:
 
 def write_comparison(out_dir, c: Comparison) -> dict:
     """The report folder of one comparison (ab.compare.compare); returns report.json's dict."""
-    return write_report(out_dir, c.stock, c.ours, c.info(), c.heatmaps, c.verdict)
+    return write_report(out_dir, c.stock, c.ours, c.info(), c.heatmaps, c.verdict, c.measured)
