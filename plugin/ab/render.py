@@ -187,10 +187,10 @@ def _int_setting(text: str, key: str) -> int | None:
 
 @dataclass(frozen=True)
 class Wrapper:
-    """An `aov` or `moment` integrator around one path tracer (possibly through another such
-    wrapper), as the scene's XML states it: it adds channels (AOVs, second moments) to the path
-    tracer's estimate and changes nothing else. `wrap(inner)` is the same wrapper around another
-    integrator (a dict or a loaded object): stock's `path`, or our `layerbvh`."""
+    """An `aov` or `moment` integrator around one of ESTIMATORS (possibly through another such
+    wrapper), as the scene's XML states it: it adds channels (AOVs, second moments) to the
+    estimator's result and changes nothing else. `wrap(inner)` is the same wrapper around another
+    integrator (a dict or a loaded object): stock's estimator, or ours standing in for it."""
 
     type: str                        # "aov" | "moment"
     props: tuple = ()                # its own properties as (name, value) pairs (aov: aovs)
@@ -205,14 +205,15 @@ class Wrapper:
         return f"{self.type}({self.leaf if self.inner is None else self.inner.name})"
 
 
-def _substituted(value: str | None, defaults: dict) -> str | None:
+def substituted(value: str | None, defaults: dict) -> str | None:
+    """A scene file's attribute with its `$name` parameters replaced by their values (`defaults`)."""
     return None if value is None else re.sub(r"\$(\w+)", lambda m: str(defaults.get(m.group(1), m.group(0))), value)
 
 
 def _xml_wrapper(el, defaults: dict) -> tuple[Wrapper | None, dict]:
     """(the wrapper, the inner estimator's XML boolean properties) of an <integrator> element, or
     (None, {}) when it is not aov/moment around exactly one of ESTIMATORS with properties we know."""
-    kind = _substituted(el.get("type"), defaults)
+    kind = substituted(el.get("type"), defaults)
     if kind not in ("aov", "moment"):
         return None, {}
     props, inner = [], []
@@ -220,14 +221,14 @@ def _xml_wrapper(el, defaults: dict) -> tuple[Wrapper | None, dict]:
         if child.tag == "integrator":
             inner.append(child)
         elif kind == "aov" and child.tag == "string" and child.get("name") == "aovs":
-            props.append(("aovs", _substituted(child.get("value"), defaults)))
+            props.append(("aovs", substituted(child.get("value"), defaults)))
         elif child.tag != "default":
             return None, {}
     if len(inner) != 1:
         return None, {}
-    leaf = _substituted(inner[0].get("type"), defaults)
+    leaf = substituted(inner[0].get("type"), defaults)
     if leaf in ESTIMATORS:
-        path = {c.get("name"): _substituted(c.get("value"), defaults) for c in inner[0] if c.tag == "boolean"}
+        path = {c.get("name"): substituted(c.get("value"), defaults) for c in inner[0] if c.tag == "boolean"}
         return Wrapper(kind, tuple(props), leaf=leaf), path
     nested, path = _xml_wrapper(inner[0], defaults)
     return (None, {}) if nested is None else (Wrapper(kind, tuple(props), nested, leaf=nested.leaf), path)
@@ -250,7 +251,7 @@ def _scene_integrator(path: Path, defaults: dict, seen: set):
         if el.tag == "integrator":
             return el
         if el.tag == "include" and el.get("filename"):
-            found = _scene_integrator(path.parent / _substituted(el.get("filename"), defaults), defaults, seen)
+            found = _scene_integrator(path.parent / substituted(el.get("filename"), defaults), defaults, seen)
             if found is not None:
                 return found
     return None
@@ -275,7 +276,7 @@ class PathSettings:
     hide_emitters; direct: emitter_samples, bsdf_samples, hide_emitters; only those the scene
     sets). `scene_integrator`:
     the scene's integrator (`integrator_name`). `wrapper`: the scene's `aov`/`moment` around its
-    path tracer, kept on both sides (stock's path inside on one, our layerbvh on the other).
+    estimator, kept on both sides (stock's estimator inside on one, ours on the other).
     `as_path`: the scene's integrator is neither path nor such a wrapper and the user asked to
     compare it as path (`--as-path`); `note` says what was taken from it."""
 
@@ -296,8 +297,8 @@ class PathSettings:
         return STANDS_IN_FOR[self.estimator]
 
     def integrator(self, inner):
-        """What a side renders: `inner` (a path or layerbvh dict or object), in the scene's
-        wrapper where it has one."""
+        """What a side renders: `inner` (stock's estimator or ours, a dict or a loaded object), in
+        the scene's wrapper where it has one."""
         return inner if self.wrapper is None else self.wrapper.wrap(inner)
 
     @property

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import re
 import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -11,16 +10,12 @@ from pathlib import Path
 import numpy as np
 
 from layerbvh_mitsuba import atomic
-from layerbvh_mitsuba.ab.render import load_integrator, read_exr, render_passes, write_exr
+from layerbvh_mitsuba.ab.render import load_integrator, read_exr, render_passes, substituted, write_exr
 
 
 class SceneFilesError(ValueError):
     """A scene's files cannot be read for its key (bad XML, a referenced file missing), or its
     stock render cannot be cached."""
-
-
-def _substitute(value: str, defaults: dict) -> str:
-    return re.sub(r"\$(\w+)", lambda m: str(defaults.get(m.group(1), m.group(0))), value)
 
 
 def scene_files(scene: Path, _seen=None) -> list[Path]:
@@ -41,7 +36,7 @@ def scene_files(scene: Path, _seen=None) -> list[Path]:
             el.get("value") if el.get("name") == "filename" else None)
         if ref is None:
             continue
-        path = (scene.parent / _substitute(ref, defaults)).resolve()
+        path = (scene.parent / substituted(ref, defaults)).resolve()
         if not path.is_file():
             raise SceneFilesError(f"scene {scene.name}: referenced file not found: {ref}")
         files += scene_files(path, seen) if path.suffix == ".xml" else [path]
