@@ -42,6 +42,7 @@ class SameSeedResult:
     ours: np.ndarray
     ours_stats: RenderStats  # the layerbvh integrator's last_stats
     passed: bool = False     # the criterion held
+    compared_as: str = ""    # what both sides rendered (PathSettings.compared_as: "path", "moment(volpath)", ...)
 
     def summary(self) -> str:
         return (f"{100 * self.frac_within:.3f}% of pixels within tolerance, mean |diff| {self.mean_abs:.3g} "
@@ -61,7 +62,8 @@ def same_seed(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", tol
     c = compare(use_variant(), settings(scene_path, spp, res, seed, traversal, ours_props, params,
                                         statistical_step=False))
     v = same_seed_verdict(c.stock, c.ours, tol, min_frac, max_mean_rel)
-    return SameSeedResult(stock=c.stock, ours=c.ours, ours_stats=c.stats, passed=v["passed"], **v["values"])
+    return SameSeedResult(stock=c.stock, ours=c.ours, ours_stats=c.stats, passed=v["passed"],
+                          compared_as=c.path.compared_as, **v["values"])
 
 
 def assert_matches_stock(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", tol=SAME_SEED_TOL,

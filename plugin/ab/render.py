@@ -129,7 +129,7 @@ INTEGRATOR_PLUGINS = {
     "PRBIntegrator": "prb", "LayerBVHIntegrator": "layerbvh",
 }
 WRAPPERS = ("aov", "moment", "stokes")  # integrators that run others and add channels
-ESTIMATORS = tuple(STANDS_IN_FOR)  # Mitsuba's integrators ours mirror: path, direct
+ESTIMATORS = tuple(STANDS_IN_FOR)  # Mitsuba's integrators ours mirror: path, direct, volpath
 
 
 def _plugin(cls: str) -> str:
@@ -195,7 +195,7 @@ class Wrapper:
     type: str                        # "aov" | "moment"
     props: tuple = ()                # its own properties as (name, value) pairs (aov: aovs)
     inner: "Wrapper | None" = None   # a wrapper it wraps, else it wraps the estimator itself
-    leaf: str = "path"               # the estimator inside: "path" | "direct"
+    leaf: str = "path"               # the estimator inside: "path" | "direct" | "volpath"
 
     def wrap(self, inner) -> dict:
         return {"type": self.type, **dict(self.props), "inner": inner if self.inner is None else self.inner.wrap(inner)}
@@ -271,8 +271,8 @@ def scene_wrapper(scene_path, params: dict | None = None) -> tuple[Wrapper | Non
 class PathSettings:
     """The settings both sides of a comparison render with, and where they come from.
 
-    `estimator`: the scene's estimator, `path` or `direct` (ours stands in for it:
-    runtime.registry.STANDS_IN_FOR). `props`: its settings (path: max_depth, rr_depth,
+    `estimator`: the scene's estimator, `path`, `direct` or `volpath` (ours stands in for it:
+    runtime.registry.STANDS_IN_FOR). `props`: its settings (path, volpath: max_depth, rr_depth,
     hide_emitters; direct: emitter_samples, bsdf_samples, hide_emitters; only those the scene
     sets). `scene_integrator`:
     the scene's integrator (`integrator_name`). `wrapper`: the scene's `aov`/`moment` around its
@@ -308,7 +308,7 @@ class PathSettings:
         return self.estimator + (" (--as-path)" if self.as_path else "")
 
 
-SUPPORTED = "path, direct, and aov or moment around either"
+SUPPORTED = "path, direct, volpath, and aov or moment around them"
 
 
 def path_settings(mi, scene, as_path: bool = False, scene_path=None, params: dict | None = None) -> PathSettings:

@@ -9,6 +9,7 @@ import numpy as np
 
 from layerbvh_mitsuba.ab import metrics
 from layerbvh_mitsuba.ab.render import load_integrator, load_scene
+from layerbvh_mitsuba.runtime.adapter import sensor_medium
 from layerbvh_mitsuba.runtime.stats import RenderStats
 
 # Seeds of the statistical step's two renders: apart, so stock's and ours' samples are independent.
@@ -107,7 +108,7 @@ def pixel_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarra
     pixel = dr.arange(mi.UInt32, n) // spp
     pos = mi.Vector2f(mi.Float(pixel % w), mi.Float(pixel // w)) + sampler.next_2d()
     ray, weight = sensor.sample_ray(0.0, sampler.next_1d(), pos / mi.Vector2f(w, h), sampler.next_2d())
-    L, _, _ = integrator.sample(scene, sampler, ray, None, True)
+    L, _, _ = integrator.sample(scene, sampler, ray, sensor_medium(sensor), True)  # (volpath: a camera in a medium)
     value = weight * L
     dr.eval(value)
     v = np.stack([np.asarray(value[c], np.float64) for c in range(3)], -1).reshape(h, w, spp, 3)

@@ -163,6 +163,12 @@ def _children(obj) -> list:
     return objects
 
 
+def sensor_medium(sensor):
+    """The medium a sensor sits in, or None (Mitsuba's Python API does not expose it; the
+    sensor hands it to its traversal callback)."""
+    return next((obj for name, obj in _children(sensor) if name == "medium"), None)
+
+
 def _is_shapegroup(obj) -> bool:
     return obj.class_name() in ("ShapeGroupPlugin", "ShapeGroup")
 

@@ -119,6 +119,7 @@ class LayerBVHPathTracer:
     """
 
     _base = None
+    VOLUMETRIC = False  # the estimator handles participating media (features.plan_features)
 
     def __init__(self, props: mi.Properties):
         self._base.__init__(self, props)
@@ -154,7 +155,8 @@ class LayerBVHPathTracer:
                 tracer = SceneTracer(scene, self.traversal.mode, self.treelet_height, self.leaf_size,
                                      count_work=self.stats, batch_rays=self.batch_rays, branching=self.branching)
                 treelets, analytic = tracer.bvh.stats.treelets, len(tracer.geometry.analytic)
-            features = plan_features(scene, analytic, treelets, self.traversal.name, self.stats, self.adaptive)
+            features = plan_features(scene, analytic, treelets, self.traversal.name, self.stats, self.adaptive,
+                                     volumetric=self.VOLUMETRIC)
             self._state = SceneState(scene, tracer, features)
             if self.traversal.auto:
                 self._state.auto_file = cache_dir("auto") / f"{tracer.device_key()[:32]}.json"
@@ -216,12 +218,23 @@ class LayerBVHPathTracer:
         tracer = state.tracer
         policy, treelets = tracer.bvh.auto, tracer.bvh.stats.treelets
         k = min(dr.width(ray.o), self.batch_rays)  # what one traced batch holds
+        reason = self._auto_rule(state)
+        if reason is not None:
+            for any_hit, hint in self._auto_kinds(state):
+                policy.choices.setdefault(layerbvh.choice_key(any_hit, hint, k),
+                                          {"mode": "per_ray", "reason": reason, "seconds": None, "sample_rays": 0})
+            return True
 
         def modes():
             return [policy.settle(any_hit, hint, k, treelets) for any_hit, hint in self._auto_kinds(state)]
         if None in modes():
             self._prepass(scene, state, ray, k)
         return all(mode == "per_ray" for mode in modes())
+
+    def _auto_rule(self, state: SceneState) -> str | None:
+        """Why this integrator runs every batch of this scene per_ray (the megakernel) whatever
+        timing would say, or None: the path tracer times its open decisions."""
+        return None
 
     def _prepass(self, scene, state: SceneState, ray: mi.Ray3f, k: int) -> None:
         """Time auto's open decisions on rays of this scene, before the render: the pass's first
@@ -239,11 +252,16 @@ class LayerBVHPathTracer:
             cam = mi.Ray3f(take(ray.o), take(ray.d), take(ray.maxt), take(ray.time), take(ray.wavelengths))
             sampler = mi.load_dict({"type": "independent"})
             sampler.seed(self.PREPASS_SEED, k)
-            active = dr.full(mi.Bool, True, k)
-            path = self._start_path(scene, cam, tracer.intersect(cam, active, hint="camera"), active)
-            self._vertex(scene, sampler, state.features, tracer, path, megakernel=False)
+            self._prepass_paths(scene, state, cam, sampler)
         state.prepass_s += (time.perf_counter() - t0 - clock.seconds
                             - (tracer.bvh.auto.calibration_s - policy_s))
+
+    def _prepass_paths(self, scene, state: SceneState, cam: mi.Ray3f, sampler) -> None:
+        """The pre-pass's work on its camera rays: their hits and one path vertex (the kinds of
+        batch a render of this integrator traces)."""
+        active = dr.full(mi.Bool, True, dr.width(cam.o))
+        path = self._start_path(scene, cam, state.tracer.intersect(cam, active, hint="camera"), active)
+        self._vertex(scene, sampler, state.features, state.tracer, path, megakernel=False)
 
     def _keep_auto_choices(self, state: SceneState) -> None:
         """Persist auto's timed decisions, so later runs on this scene, BVH and device skip timing."""

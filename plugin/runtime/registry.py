@@ -1,16 +1,18 @@
-"""Our integrators registered with Mitsuba, once per JIT variant: `layerbvh` (the path tracer) and `layerbvh_direct` (direct illumination)."""
+"""Our integrators registered with Mitsuba, once per JIT variant: `layerbvh` (the path tracer), `layerbvh_direct` (direct illumination) and `layerbvh_volpath` (volumetric path tracing)."""
 from __future__ import annotations
 
 import mitsuba as mi
 
 from layerbvh_mitsuba.runtime.direct import LayerBVHDirect
 from layerbvh_mitsuba.runtime.integrator import LayerBVHPathTracer
+from layerbvh_mitsuba.runtime.volpath import LayerBVHVolPath
 
 # Plugin name -> (the Mitsuba class's name, the Python class whose methods it takes).
 PLUGINS = {"layerbvh": ("LayerBVHIntegrator", LayerBVHPathTracer),
-           "layerbvh_direct": ("LayerBVHDirectIntegrator", LayerBVHDirect)}
+           "layerbvh_direct": ("LayerBVHDirectIntegrator", LayerBVHDirect),
+           "layerbvh_volpath": ("LayerBVHVolPathIntegrator", LayerBVHVolPath)}
 # Mitsuba's integrators ours stand in for, by plugin name.
-STANDS_IN_FOR = {"path": "layerbvh", "direct": "layerbvh_direct"}
+STANDS_IN_FOR = {"path": "layerbvh", "direct": "layerbvh_direct", "volpath": "layerbvh_volpath"}
 
 _classes: dict[tuple[str, str], type] = {}
 

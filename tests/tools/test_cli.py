@@ -138,18 +138,27 @@ def test_integrators_are_named_by_what_they_wrap(integrator, name):
     assert integrator_name(mi.load_dict(integrator)) == name
 
 
-def test_a_wrapped_volpath_scene_is_named_as_what_it_is(tmp_path, capsys):
+def test_a_wrapped_volpathmis_scene_is_named_as_what_it_is(tmp_path, capsys):
     """Refused by its own name without --as-path; with it, report.json says what the scene asked
-    for and the depth comes from the volpath inside."""
-    scene = tmp_path / "fog.xml"
-    scene.write_text("""<scene version="3.0.0">
-        <integrator type="moment"><integrator type="volpath"><integer name="max_depth" value="3"/></integrator></integrator>
+    for and the depth comes from the volpathmis inside. The same scene with volpath compares as
+    it is: ours inside the wrapper."""
+    def fog(integrator):
+        scene = tmp_path / f"fog_{integrator}.xml"
+        scene.write_text(f"""<scene version="3.0.0">
+        <integrator type="moment"><integrator type="{integrator}"><integer name="max_depth" value="3"/></integrator>
+        </integrator>
         <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/>
         </film></sensor><emitter type="constant"/>
         <shape type="rectangle"><transform name="to_world"><translate z="3"/></transform></shape></scene>""")
+        return scene
+    scene = fog("volpathmis")
     assert main(["compare", str(scene), "--out", str(tmp_path / "no"), "--no-progress"]) == 2
-    assert "moment(volpath)" in _err(capsys)
+    assert "moment(volpathmis)" in _err(capsys)
     assert main(["compare", str(scene), "--out", str(tmp_path / "cmp"), "--as-path", "--spp", "4",
                  "--no-progress"]) == 0
     rep = json.loads((tmp_path / "cmp" / "report.json").read_text())
-    assert rep["scene_integrator"] == "moment(volpath)" and rep["integrator"]["max_depth"] == 3, rep["integrator"]
+    assert rep["scene_integrator"] == "moment(volpathmis)" and rep["integrator"]["max_depth"] == 3, rep["integrator"]
+    assert main(["compare", str(fog("volpath")), "--out", str(tmp_path / "vp"), "--spp", "4", "--no-progress"]) == 0
+    rep = json.loads((tmp_path / "vp" / "report.json").read_text())
+    assert rep["scene_integrator"] == rep["compared_as"] == "moment(volpath)", rep["compared_as"]
+    assert rep["integrator"]["max_depth"] == 3 and rep["verdict"]["passed"], rep["verdict"]

@@ -729,8 +729,8 @@ def image_case(name: str, scene: str, scale: float, spp: int = 16, control: str 
     c = compare(mi, CompareSettings(scene=path, spp=spp, seed=3, traversal=Traversal.parse("layer_sorted"),
                                     treelet_height=LAYER_HEIGHT, params={**scene_params, "robust": False},
                                     statistical_step=False))
-    st, props = c.stats, c.path.props
-    stock = mi.load_dict({"type": "path", **props})
+    st = c.stats
+    stock = mi.load_dict(c.path.stock_inner())  # (the scene's estimator: path, or volpath in the media cases)
     robust_scene = load_scene(mi, str(path), **scene_params, robust=True)
     robust = np.array(mi.render(robust_scene, integrator=stock, spp=spp, seed=3), np.float32)
     changed_params = mi.traverse(c.scene)
@@ -777,6 +777,18 @@ case("facing_mirrors", "image", "two facing perfect mirrors 1.98 apart with a di
 
 case("infinite_mirrors", "image", "Mitsuba's infinite_mirrors test scene: three chrome sphere meshes under an environment map")(
     lambda scale: image_case("infinite_mirrors", "infinite_mirrors", scale, control="chrome.specular_reflectance.value"))
+
+for _medium, _what, _params in (
+        ("medium_dense", "a homogeneous medium of density 200 (albedo 0.9) in a null-BSDF block, volpath",
+         {"density": "200"}),
+        ("medium_thin", "a homogeneous medium of density 1e-4 (nearly transparent) in a null-BSDF block, volpath",
+         {"density": "0.0001"}),
+        ("medium_back_faces", "the block's normals flipped and the medium its exterior: rays enter through back "
+         "faces, volpath", {"flip": "true", "side": "exterior"})):
+    case(_medium, "image", _what)(
+        # (max_depth 4: between kernels each collision is a loop iteration; the suite's time)
+        lambda scale, _medium=_medium, _params=_params: image_case(_medium, "medium", scale, max_depth="4",
+                                                                   **_params))
 
 for _depth in (1, 2, 64):
     case(f"max_depth_{_depth}", "image", f"the glass block scene (int_ior 1.5) with max_depth {_depth}")(
