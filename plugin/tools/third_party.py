@@ -60,7 +60,6 @@ DEFAULT_SCENES = (
     "mitsuba/tests/bsdf_spheres/*.xml",
     "mitsuba/tests/infinite_mirrors/scene_path.xml",
     "mitsuba/tests/instancing/test_instancing_path.xml",
-    "mitsuba/tests/participating_media/*_volpath.xml",
     "mitsuba/tests/floating_sphere/*.xml",
     "mitsuba/tests/orthographic_sensor/*.xml",
 )
