@@ -1,6 +1,7 @@
 """Scenes with participating media through our traversal: `layerbvh_volpath` against stock `volpath` on Mitsuba's own media test scenes (same seed, independent seeds, and Mitsuba's reference images with its own criterion) and on media scenes written here, in every JIT variant tested."""
 from __future__ import annotations
 
+import math
 import re
 import subprocess
 import sys
@@ -76,7 +77,7 @@ def _z_test_pass_fraction(img, spp: int, ref, ref_var) -> float:
     of the image against the reference with the reference's per-sample variance (floored at
     1e-4), Šidák-corrected at 0.01 over the pixels; the share of channels that pass."""
     z = np.abs(img - ref) * np.sqrt(spp / np.maximum(ref_var, 1e-4))
-    p_value = 2.0 * (1.0 - 0.5 * (1.0 + np.vectorize(__import__("math").erf)(z / np.sqrt(2.0))))
+    p_value = 2.0 * (1.0 - 0.5 * (1.0 + np.vectorize(math.erf)(z / np.sqrt(2.0))))
     pixels = img.shape[0] * img.shape[1]
     alpha = 1.0 - (1.0 - 0.01) ** (1.0 / pixels)
     return float(np.count_nonzero(p_value > alpha) / 3 / pixels)
