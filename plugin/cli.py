@@ -40,9 +40,9 @@ from layerbvh_mitsuba.tools import converge
 from layerbvh_mitsuba.tools.bench import locality
 from layerbvh_mitsuba.tools.sweep import grid as sweep
 
-AS_PATH_HELP = ("the scene's integrator is none of path, direct, volpath or an aov/moment wrapper around them "
-                "(volpathmis, prb, ...): render both sides with path anyway, with the settings read from it where it "
-                "has them (without this, such a scene is refused)")
+AS_PATH_HELP = ("the scene's integrator is none of path, direct, volpath, volpathmis or an aov/moment wrapper around "
+                "them (prb, ptracer, ...): render both sides with path anyway, with the settings read from it where "
+                "it has them (without this, such a scene is refused)")
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -129,7 +129,7 @@ INTEGRATOR_PLUGINS = {
     "PRBIntegrator": "prb", "LayerBVHIntegrator": "layerbvh",
 }
 WRAPPERS = ("aov", "moment", "stokes")  # integrators that run others and add channels
-ESTIMATORS = tuple(STANDS_IN_FOR)  # Mitsuba's integrators ours mirror: path, direct, volpath
+ESTIMATORS = tuple(STANDS_IN_FOR)  # Mitsuba's integrators ours mirror: path, direct, volpath, volpathmis
 
 
 def _plugin(cls: str) -> str:
@@ -195,7 +195,7 @@ class Wrapper:
     type: str                        # "aov" | "moment"
     props: tuple = ()                # its own properties as (name, value) pairs (aov: aovs)
     inner: "Wrapper | None" = None   # a wrapper it wraps, else it wraps the estimator itself
-    leaf: str = "path"               # the estimator inside: "path" | "direct" | "volpath"
+    leaf: str = "path"               # the estimator inside: one of ESTIMATORS
 
     def wrap(self, inner) -> dict:
         return {"type": self.type, **dict(self.props), "inner": inner if self.inner is None else self.inner.wrap(inner)}
@@ -208,6 +208,11 @@ class Wrapper:
 def substituted(value: str | None, defaults: dict) -> str | None:
     """A scene file's attribute with its `$name` parameters replaced by their values (`defaults`)."""
     return None if value is None else re.sub(r"\$(\w+)", lambda m: str(defaults.get(m.group(1), m.group(0))), value)
+
+
+def _xml_booleans(el, defaults: dict) -> dict:
+    """An <integrator> element's boolean properties, by name, as written ("true"/"false")."""
+    return {c.get("name"): substituted(c.get("value"), defaults) for c in el if c.tag == "boolean"}
 
 
 def _xml_wrapper(el, defaults: dict) -> tuple[Wrapper | None, dict]:
@@ -228,8 +233,7 @@ def _xml_wrapper(el, defaults: dict) -> tuple[Wrapper | None, dict]:
         return None, {}
     leaf = substituted(inner[0].get("type"), defaults)
     if leaf in ESTIMATORS:
-        path = {c.get("name"): substituted(c.get("value"), defaults) for c in inner[0] if c.tag == "boolean"}
-        return Wrapper(kind, tuple(props), leaf=leaf), path
+        return Wrapper(kind, tuple(props), leaf=leaf), _xml_booleans(inner[0], defaults)
     nested, path = _xml_wrapper(inner[0], defaults)
     return (None, {}) if nested is None else (Wrapper(kind, tuple(props), nested, leaf=nested.leaf), path)
 
@@ -260,10 +264,13 @@ def _scene_integrator(path: Path, defaults: dict, seen: set):
 def scene_wrapper(scene_path, params: dict | None = None) -> tuple[Wrapper | None, dict]:
     """The wrapper around one of ESTIMATORS that the scene file's <integrator> states, read from
     its XML (an `aov` wrapper's channel list is in its properties, not in the loaded object;
-    <include>d files are followed), and the inner estimator's boolean properties; (None, {}) for
-    anything else."""
+    <include>d files are followed), and the inner estimator's boolean properties; (None, the
+    estimator's boolean properties) for an estimator without a wrapper (volpathmis's
+    use_spectral_mis is not in the loaded object); (None, {}) for anything else."""
     defaults = {k: str(v).lower() if isinstance(v, bool) else str(v) for k, v in (params or {}).items()}
     el = _scene_integrator(Path(scene_path), defaults, set())
+    if el is not None and substituted(el.get("type"), defaults) in ESTIMATORS:
+        return None, _xml_booleans(el, defaults)
     return (None, {}) if el is None else _xml_wrapper(el, defaults)
 
 
@@ -271,11 +278,10 @@ def scene_wrapper(scene_path, params: dict | None = None) -> tuple[Wrapper | Non
 class PathSettings:
     """The settings both sides of a comparison render with, and where they come from.
 
-    `estimator`: the scene's estimator, `path`, `direct` or `volpath` (ours stands in for it:
-    runtime.registry.STANDS_IN_FOR). `props`: its settings (path, volpath: max_depth, rr_depth,
-    hide_emitters; direct: emitter_samples, bsdf_samples, hide_emitters; only those the scene
-    sets). `scene_integrator`:
-    the scene's integrator (`integrator_name`). `wrapper`: the scene's `aov`/`moment` around its
+    `estimator`: the scene's estimator, `path`, `direct`, `volpath` or `volpathmis` (ours stands
+    in for it: runtime.registry.STANDS_IN_FOR). `props`: its settings (path, volpath: max_depth,
+    rr_depth, hide_emitters; volpathmis: those and use_spectral_mis; direct: emitter_samples,
+    bsdf_samples, hide_emitters; only those the scene sets). `scene_integrator`: the scene's integrator (`integrator_name`). `wrapper`: the scene's `aov`/`moment` around its
     estimator, kept on both sides (stock's estimator inside on one, ours on the other).
     `as_path`: the scene's integrator is neither path nor such a wrapper and the user asked to
     compare it as path (`--as-path`); `note` says what was taken from it."""
@@ -308,7 +314,7 @@ class PathSettings:
         return self.estimator + (" (--as-path)" if self.as_path else "")
 
 
-SUPPORTED = "path, direct, volpath, and aov or moment around them"
+SUPPORTED = "path, direct, volpath, volpathmis, and aov or moment around them"
 
 
 def path_settings(mi, scene, as_path: bool = False, scene_path=None, params: dict | None = None) -> PathSettings:
@@ -338,6 +344,8 @@ def path_settings(mi, scene, as_path: bool = False, scene_path=None, params: dic
         props["hide_emitters"] = bool(integ.hide_emitters)
     elif wrapper is not None and "hide_emitters" in inner_xml:
         props["hide_emitters"] = inner_xml["hide_emitters"].lower() == "true"
+    if estimator == "volpathmis" and "use_spectral_mis" in inner_xml:  # (only the XML has it)
+        props["use_spectral_mis"] = inner_xml["use_spectral_mis"].lower() == "true"
     note = ""
     if not own and wrapper is None:
         shown = ", ".join(f"{k}={v}" for k, v in props.items()) or "path's defaults"

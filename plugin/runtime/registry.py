@@ -1,4 +1,4 @@
-"""Our integrators registered with Mitsuba, once per JIT variant: `layerbvh` (the path tracer), `layerbvh_direct` (direct illumination) and `layerbvh_volpath` (volumetric path tracing)."""
+"""Our integrators registered with Mitsuba, once per JIT variant: `layerbvh` (the path tracer), `layerbvh_direct` (direct illumination), `layerbvh_volpath` and `layerbvh_volpathmis` (volumetric path tracing)."""
 from __future__ import annotations
 
 import mitsuba as mi
@@ -6,13 +6,16 @@ import mitsuba as mi
 from layerbvh_mitsuba.runtime.direct import LayerBVHDirect
 from layerbvh_mitsuba.runtime.integrator import LayerBVHPathTracer
 from layerbvh_mitsuba.runtime.volpath import LayerBVHVolPath
+from layerbvh_mitsuba.runtime.volpathmis import LayerBVHVolPathMIS
 
 # Plugin name -> (the Mitsuba class's name, the Python class whose methods it takes).
 PLUGINS = {"layerbvh": ("LayerBVHIntegrator", LayerBVHPathTracer),
            "layerbvh_direct": ("LayerBVHDirectIntegrator", LayerBVHDirect),
-           "layerbvh_volpath": ("LayerBVHVolPathIntegrator", LayerBVHVolPath)}
+           "layerbvh_volpath": ("LayerBVHVolPathIntegrator", LayerBVHVolPath),
+           "layerbvh_volpathmis": ("LayerBVHVolPathMISIntegrator", LayerBVHVolPathMIS)}
 # Mitsuba's integrators ours stand in for, by plugin name.
-STANDS_IN_FOR = {"path": "layerbvh", "direct": "layerbvh_direct", "volpath": "layerbvh_volpath"}
+STANDS_IN_FOR = {"path": "layerbvh", "direct": "layerbvh_direct", "volpath": "layerbvh_volpath",
+                 "volpathmis": "layerbvh_volpathmis"}
 
 _classes: dict[tuple[str, str], type] = {}
 

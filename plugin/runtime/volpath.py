@@ -47,7 +47,7 @@ class VolPathState:
 
 @dataclass
 class ShadowState:
-    """The transmittance loop's state (stock volpath's `sample_emitter` LoopState)."""
+    """The transmittance loop's state (stock volpath's and volpathmis's `sample_emitter` LoopState)."""
 
     active: mi.Bool
     ray: mi.Ray3f
@@ -55,7 +55,31 @@ class ShadowState:
     needs_intersection: mi.Bool
     medium: mi.MediumPtr
     si: mi.SurfaceInteraction3f
-    transmittance: mi.Spectrum
+    weights: object  # what the light carries along the way: `Transmittance` (volpath) or volpathmis's weights
+
+
+class Transmittance:
+    """volpath's shadow-ray weights: the transmittance, a spectrum, as stock's ratio tracking
+    updates it at each free flight, null collision and null surface (volpathmis keeps p/f ratios
+    instead: volpathmis.ShadowWeights, the same four operations)."""
+
+    @staticmethod
+    def free_flight(w, tr, free_flight_pdf, channel, is_spectral):
+        tr_pdf = index_spectrum(free_flight_pdf, channel)
+        return dr.select(is_spectral, w * dr.select(tr_pdf > 0, tr / tr_pdf, 0), w)
+
+    @staticmethod
+    def null_collision(w, mei, channel, is_spectral, not_spectral):
+        w = dr.select(is_spectral, w * mei.sigma_n, w)
+        return dr.select(not_spectral, w * mei.sigma_n / mei.combined_extinction, w)
+
+    @staticmethod
+    def null_surface(w, bsdf_val, si, channel, active):
+        return dr.select(active, w * si.to_world_mueller(bsdf_val, si.wi, si.wi), w)
+
+    @staticmethod
+    def passes(w):
+        return dr.any(_unpolarized(w) != 0)
 
 
 class LayerBVHVolPath(LayerBVHPathTracer):
@@ -173,6 +197,45 @@ class LayerBVHVolPath(LayerBVHPathTracer):
         """Stock's `scene.ray_intersect`: the closest hit (our traversal), fully interpolated."""
         return queries.intersect(ray, active, hint=hint).compute_surface_interaction(ray, mi.RayFlags.All, active)
 
+    def _free_flight(self, sampler, queries, ray: mi.Ray3f, si, medium, needs_intersection, active_medium, channel,
+                     hint: str, remaining=None):
+        """A free flight in the ray's medium (`next_1d`) and the surface it reaches (our closest
+        hit, up to the sampled distance in a homogeneous medium, `remaining` at most on a shadow
+        ray): (the medium interaction, inf where the surface comes first; the surface; needs_intersection)."""
+        mei = medium.sample_interaction(ray, sampler.next_1d(active_medium), channel, active_medium)
+        maxt = mei.t if remaining is None else dr.minimum(mei.t, remaining)
+        ray.maxt = dr.select(active_medium & medium.is_homogeneous() & mei.is_valid(), maxt, ray.maxt)
+        intersect = needs_intersection & active_medium
+        si = dr.select(intersect, self._hit(queries, ray, intersect, hint), si)
+        needs_intersection &= ~active_medium
+        mei.t = dr.select(active_medium & (si.t < mei.t), dr.inf, mei.t)
+        return mei, si, needs_intersection
+
+    def _emitter_hit(self, scene, si, active_surface, depth, specular_chain, last_event):
+        """Emission where a path reaches a surface: (where an emitter is hit, where it counts
+        unweighted (camera rays, specular chains), the pdf of emitter sampling having found it
+        from the last scattering event, its radiance)."""
+        count_direct = (active_surface & (depth == 0)) | specular_chain
+        emitter = si.emitter(scene)
+        active_e = active_surface & (emitter != None)  # noqa: E711
+        if self.hide_emitters:
+            active_e &= depth != 0
+        ds = mi.DirectionSample3f(scene, si=si, ref=last_event)
+        emitter_pdf = scene.pdf_emitter_direction(last_event, ds, active_e)
+        return active_e, count_direct, emitter_pdf, emitter.eval(si, active_e)
+
+    def _surface_hit(self, queries, ray: mi.Ray3f, si, intersect, depth, hint: str, megakernel: bool):
+        """The surface a ray reaches where `intersect` (kept from before elsewhere); with
+        hide_emitters a camera ray that hits an area emitter continues behind it (as stock)."""
+        si = dr.select(intersect, self._hit(queries, ray, intersect, hint), si)
+        if self.hide_emitters:
+            skip = si.is_valid() & (si.shape.emitter() != None) & (depth == 0) & intersect  # noqa: E711
+            behind = si.spawn_ray(ray.d)
+            pi = self._skip_area_emitters(queries, behind, queries.intersect(behind, skip, hint=hint), skip,
+                                          megakernel)
+            si = dr.select(skip, pi.compute_surface_interaction(behind, mi.RayFlags.All, skip), si)
+        return si
+
     # -- one loop iteration ---------------------------------------------------------------------
     def _iteration(self, scene, sampler, use, queries, s: VolPathState, channel, megakernel: bool, hint: str):
         active, depth, ray, throughput, result = s.active, s.depth, mi.Ray3f(s.ray), s.throughput, s.result
@@ -197,12 +260,8 @@ class LayerBVHVolPath(LayerBVHPathTracer):
         if use.media.on:
             is_spectral = active_medium & medium.has_spectral_extinction()
             not_spectral = ~is_spectral & active_medium
-            mei = medium.sample_interaction(ray, sampler.next_1d(active_medium), channel, active_medium)
-            ray.maxt = dr.select(active_medium & medium.is_homogeneous() & mei.is_valid(), mei.t, ray.maxt)
-            intersect = needs_intersection & active_medium
-            si = dr.select(intersect, self._hit(queries, ray, intersect, hint), si)
-            needs_intersection &= ~active_medium
-            mei.t = dr.select(active_medium & (si.t < mei.t), dr.inf, mei.t)
+            mei, si, needs_intersection = self._free_flight(sampler, queries, ray, si, medium, needs_intersection,
+                                                            active_medium, channel, hint)
             tr, free_flight_pdf = medium.transmittance_eval_pdf(mei, si, is_spectral)
             tr_pdf = index_spectrum(free_flight_pdf, channel)
             throughput = dr.select(is_spectral, throughput * dr.select(tr_pdf > 0, tr / tr_pdf, 0), throughput)
@@ -260,24 +319,11 @@ class LayerBVHVolPath(LayerBVHPathTracer):
         # -- surfaces: the hit, emission found there, emitter sampling, BSDF sampling
         active_surface |= escaped_medium
         intersect = active_surface & needs_intersection
-        si = dr.select(intersect, self._hit(queries, ray, intersect, hint), si)
-
-        if self.hide_emitters:  # a camera ray that hits an area emitter continues behind it (as stock)
-            skip = si.is_valid() & (si.shape.emitter() != None) & (depth == 0) & intersect  # noqa: E711
-            behind = si.spawn_ray(ray.d)
-            pi = self._skip_area_emitters(queries, behind, queries.intersect(behind, skip, hint=hint), skip,
-                                          megakernel)
-            si = dr.select(skip, pi.compute_surface_interaction(behind, mi.RayFlags.All, skip), si)
+        si = self._surface_hit(queries, ray, si, intersect, depth, hint, megakernel)
 
         if use.emitter_hits.on:
-            count_direct = (active_surface & (depth == 0)) | specular_chain
-            emitter = si.emitter(scene)
-            active_e = active_surface & (emitter != None)  # noqa: E711
-            if self.hide_emitters:
-                active_e &= depth != 0
-            ds = mi.DirectionSample3f(scene, si=si, ref=last_event)
-            emitter_pdf = scene.pdf_emitter_direction(last_event, ds, active_e)
-            emitted = emitter.eval(si, active_e)
+            active_e, count_direct, emitter_pdf, emitted = self._emitter_hit(scene, si, active_surface, depth,
+                                                                             specular_chain, last_event)
             contrib = dr.select(count_direct, throughput * emitted,
                                 throughput * mis_weight(last_pdf, emitter_pdf) * emitted)
             result = dr.select(active_e, result + contrib, result)
@@ -335,26 +381,35 @@ class LayerBVHVolPath(LayerBVHPathTracer):
             # ends at its first surface, whose null transmission is zero).
             return dr.select(active & queries.occluded(ray, active), 0, emitter_val), ds
 
-        max_dist = mi.Float(ray.maxt)
         if on_surface and use.media.on:
             medium = dr.select(ref.is_medium_transition(), ref.target_medium(ray.d), medium)
+        transmittance = self._shadow_walk(sampler, use, queries, ray, medium, channel, ds, active,
+                                          dr.full(mi.Spectrum, 1, dr.width(active)), Transmittance, megakernel)
+        return transmittance * emitter_val, ds
+
+    def _shadow_walk(self, sampler, use, queries, ray: mi.Ray3f, medium, channel, ds, active, weights, weigh,
+                     megakernel: bool):
+        """The shadow ray's loop (stock's in `sample_emitter`): step towards the emitter sample
+        `ds` until it is reached or no light passes, carrying `weights` as `weigh` updates them
+        (Transmittance, or volpathmis's ShadowWeights); the weights at the end."""
+        max_dist = mi.Float(ray.maxt)
         n = dr.width(active)
         state = ShadowState(active=active, ray=ray, total_dist=dr.zeros(mi.Float, n),
                             needs_intersection=dr.full(mi.Bool, True, n), medium=medium,
-                            si=dr.zeros(mi.SurfaceInteraction3f, n), transmittance=dr.full(mi.Spectrum, 1, n))
+                            si=dr.zeros(mi.SurfaceInteraction3f, n), weights=weights)
 
         def step(sampler, t: ShadowState):
-            return sampler, self._transmittance_step(sampler, use, queries, t, channel, max_dist, ds)
+            return sampler, self._transmittance_step(sampler, use, queries, t, channel, max_dist, ds, weigh)
 
         sampler, state = loop((sampler, state), cond=lambda sampler, t: t.active, body=step, symbolic=megakernel,
                               label="layerbvh volpath transmittance")
-        return state.transmittance * emitter_val, ds
+        return state.weights
 
-    def _transmittance_step(self, sampler, use, queries, t: ShadowState, channel, max_dist, ds) -> ShadowState:
+    def _transmittance_step(self, sampler, use, queries, t: ShadowState, channel, max_dist, ds, weigh) -> ShadowState:
         """One step along a shadow ray: ratio tracking to the next collision in a medium, or the
         next surface, whose null transmission it crosses (a medium boundary switches media)."""
         active, ray, total_dist = t.active, mi.Ray3f(t.ray), t.total_dist
-        needs_intersection, medium, si, transmittance = t.needs_intersection, t.medium, t.si, t.transmittance
+        needs_intersection, medium, si, w = t.needs_intersection, t.medium, t.si, t.weights
         remaining = max_dist - total_dist
         ray.maxt = remaining
         active &= remaining > 0
@@ -362,21 +417,14 @@ class LayerBVHVolPath(LayerBVHPathTracer):
         active_surface = active & ~active_medium
         escaped_medium = mi.Bool(False)
         if use.media.on:
-            mei = medium.sample_interaction(ray, sampler.next_1d(active_medium), channel, active_medium)
-            ray.maxt = dr.select(active_medium & medium.is_homogeneous() & mei.is_valid(),
-                                 dr.minimum(mei.t, remaining), ray.maxt)
-            intersect = needs_intersection & active_medium
-            si = dr.select(intersect, self._hit(queries, ray, intersect, "shadow"), si)
-            mei.t = dr.select(active_medium & (si.t < mei.t), dr.inf, mei.t)
-            needs_intersection &= ~active_medium
+            mei, si, needs_intersection = self._free_flight(sampler, queries, ray, si, medium, needs_intersection,
+                                                            active_medium, channel, "shadow", remaining)
             is_spectral = medium.has_spectral_extinction() & active_medium
             not_spectral = ~is_spectral & active_medium
             dist = dr.minimum(remaining, dr.minimum(mei.t, si.t)) - mei.mint
             tr = dr.exp(-dist * mei.combined_extinction)
             free_flight_pdf = dr.select((si.t < mei.t) | (mei.t > remaining), tr, tr * mei.combined_extinction)
-            tr_pdf = index_spectrum(free_flight_pdf, channel)
-            transmittance = dr.select(is_spectral, transmittance * dr.select(tr_pdf > 0, tr / tr_pdf, 0),
-                                      transmittance)
+            w = weigh.free_flight(w, tr, free_flight_pdf, channel, is_spectral)
             # Sampled past the emitter: the shadow ray is done.
             total_dist = dr.select(active_medium & (mei.t > remaining) & mei.is_valid(), ds.dist, total_dist)
             mei.t = dr.select(active_medium & (mei.t > remaining), dr.inf, mei.t)
@@ -387,9 +435,7 @@ class LayerBVHVolPath(LayerBVHPathTracer):
             total_dist = dr.select(active_medium, total_dist + mei.t, total_dist)
             ray.o = dr.select(active_medium, mei.p, ray.o)
             si.t = dr.select(active_medium, si.t - mei.t, si.t)
-            transmittance = dr.select(is_spectral, transmittance * mei.sigma_n, transmittance)
-            transmittance = dr.select(not_spectral, transmittance * mei.sigma_n / mei.combined_extinction,
-                                      transmittance)
+            w = weigh.null_collision(w, mei, channel, is_spectral, not_spectral)
 
         intersect = active_surface & needs_intersection
         si = dr.select(intersect, self._hit(queries, ray, intersect, "shadow"), si)
@@ -397,17 +443,15 @@ class LayerBVHVolPath(LayerBVHPathTracer):
         active_surface |= escaped_medium
         total_dist = dr.select(active_surface, total_dist + si.t, total_dist)
         active_surface &= si.is_valid() & active & ~active_medium
-        bsdf_val = si.bsdf(ray).eval_null_transmission(si, active_surface)
-        bsdf_val = si.to_world_mueller(bsdf_val, si.wi, si.wi)
-        transmittance = dr.select(active_surface, transmittance * bsdf_val, transmittance)
+        w = weigh.null_surface(w, si.bsdf(ray).eval_null_transmission(si, active_surface), si, channel, active_surface)
         ray = dr.select(active_surface, si.spawn_ray(ray.d), ray)
         ray.maxt = remaining
         needs_intersection |= active_surface
-        active &= (active_medium | active_surface) & dr.any(_unpolarized(transmittance) != 0)
+        active &= (active_medium | active_surface) & weigh.passes(w)
         if use.media.on:
             medium = dr.select(active_surface & si.is_medium_transition(), si.target_medium(ray.d), medium)
         return ShadowState(active=active, ray=ray, total_dist=total_dist, needs_intersection=needs_intersection,
-                           medium=medium, si=si, transmittance=transmittance)
+                           medium=medium, si=si, weights=w)
 
     def to_string(self):
         return (f"LayerBVHVolPathIntegrator[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "

@@ -1,14 +1,17 @@
-"""A/B check on third-party scenes: stock against ours in the scene's own integrator (path, direct, aov/moment around them; any other as path), same seed, each scene a point of a `layerbvh sweep` (its own process).
+"""A/B check on third-party scenes: stock against ours in the scene's own integrator (path, direct, volpath, volpathmis, aov/moment around them; any other as path), same seed, each scene a point of a `layerbvh sweep` (its own process).
 
 For every scene found under --root (default ../shared/assets relative to the repository root) it
 loads the scene with the project's loader (film resized to --res) and runs the one A/B comparison
 (`ab.compare.compare`: stock `path` and `layerbvh` with the scene's own sensor, the same spp and
-seed, then the two-step verdict and the image metrics). Scenes whose integrator is not a plain `path` (Mitsuba's test
-scenes wrap it in `moment`/`aov`, or use `direct`) are compared with `path` using the inner
-integrator's settings when they can be read, else path's defaults, and the table says so.
+seed, then the two-step verdict and the image metrics). Scenes whose integrator ours does not
+mirror are compared with `path` using the inner integrator's settings when they can be read, else
+path's defaults, and the table says so. Scenes with participating media (volpath, volpathmis) run
+with --media-traversal (default auto: its rule runs them per_ray in one megakernel, since the
+wavefront loop is 8-126x slower there, PERFORMANCE.md entry 30); the notes say so.
 
     .venv/bin/python scripts/third_party.py [--root DIR] [--res W H] [--spp N] [--seed S]
-        [--traversal per_ray|layer_sorted|layer_unsorted] [--check-rays N] [--timeout SECONDS]
+        [--traversal per_ray|layer_sorted|layer_unsorted|auto] [--media-traversal MODE]
+        [--check-rays N] [--timeout SECONDS]
         [--scenes GLOB ...] [--md OUT.md] [--json OUT.json] [--readme]
         [--out SWEEP_DIR] [--workers N | --scheduler ADDRESS] [--rerun]
 
@@ -45,6 +48,7 @@ from layerbvh_mitsuba.ab.metrics import SAME_PATHS
 from layerbvh_mitsuba.ab.render import UserError, load_scene, path_settings, use_variant
 from layerbvh_mitsuba.repo import ROOT
 from layerbvh_mitsuba.runtime.adapter import UnsupportedShapeError
+from layerbvh_mitsuba.runtime.features import scene_media
 from layerbvh_mitsuba.runtime.settings import Traversal
 from layerbvh_mitsuba.tools.sweep.grid import Limits, make_points, run_sweep
 
@@ -62,6 +66,7 @@ DEFAULT_SCENES = (
     "mitsuba/tests/instancing/test_instancing_path.xml",
     "mitsuba/tests/floating_sphere/*.xml",
     "mitsuba/tests/orthographic_sensor/*.xml",
+    "mitsuba/tests/participating_media/*.xml",
 )
 
 # ------------------------------------------------------------------------------------------------
@@ -177,12 +182,17 @@ def run_worker(args) -> dict:
         rec["notes"].append(note)
     rec["integrator"] = {**path.props, **overrides}
     rec["compared_as"] = path.compared_as
+    traversal = args.traversal
+    media = path.estimator in ("volpath", "volpathmis") and bool(scene_media(scene))
+    if media:
+        traversal = args.media_traversal
+    rec["traversal"] = traversal
     sensor = scene.sensors()[0]
     rec["sensor"] = sensor.class_name()
     rec["resolution"] = [int(x) for x in sensor.film().crop_size()]
 
     settings = CompareSettings(scene=scene_path, spp=args.spp, res=tuple(args.res), seed=args.seed,
-                               traversal=Traversal.parse(args.traversal), as_path=True, path_overrides=overrides)
+                               traversal=Traversal.parse(traversal), as_path=True, path_overrides=overrides)
     try:
         c = compare(mi, settings, scene=scene)
     except ComparisonFailed as e:
@@ -195,6 +205,9 @@ def run_worker(args) -> dict:
             rec["result"] = f"error in layerbvh ({where}): {one_line(e.error)}"
         return rec
     rec["stock_s"], rec["ours_s"] = c.stock_time.render_s, c.ours_time.render_s
+    if media:
+        ran = ", ".join(sorted({m.split(":")[-1] for m in c.stats.modes_used})) or "per_ray"
+        rec["notes"].append(f"media: traversal {traversal} (--media-traversal), ran {ran}")
     rec["ray_check"] = ray_check(c.integrator.tracer(scene), args.check_rays, args.seed)
     rec["ours_build_s"] = float(c.stats.build_s)
     rec["ours_trace_s"] = float(c.stats.trace_s or 0.0)
@@ -223,7 +236,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--spp", type=int, default=8)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--traversal", default="layer_sorted",
-                   help="per_ray | layer_sorted | layer_unsorted (default: the integrator's, layer_sorted)")
+                   help="per_ray | layer_sorted | layer_unsorted | auto (default layer_sorted)")
+    p.add_argument("--media-traversal", default=layerbvh.AUTO,
+                   help="the traversal of scenes with participating media (volpath, volpathmis; default auto, "
+                        "which runs them per_ray in one megakernel: the wavefront loop is 8-126x slower there)")
     p.add_argument("--check-rays", type=int, default=200_000,
                    help="random rays traced by ours and Embree over each scene's triangles (0: skip)")
     p.add_argument("--variant", default="llvm_ad_rgb")
@@ -274,8 +290,9 @@ def _fmt(x, spec):
 
 def _markdown(cmdline: str, args, rows, missing, total: str) -> str:
     lines = [f"`{cmdline}`", "",
-             f"Stock vs ours (traversal `{args.traversal}`) in the scene's own integrator where ours mirrors it "
-             f"(`path`, `direct`, an `aov`/`moment` wrapper around them: ours inside), any other compared as path "
+             f"Stock vs ours (traversal `{args.traversal}`; scenes with media `{args.media_traversal}`) in the "
+             f"scene's own integrator where ours mirrors it (`path`, `direct`, `volpath`, `volpathmis`, an "
+             f"`aov`/`moment` wrapper around them: ours inside), any other compared as path "
              f"(the notes say so); same seed {args.seed}, "
              f"{args.spp} spp, {args.res[0]}x{args.res[1]}, variant `{args.variant}`, root `{_shown(args.root)}`. "
              f"within 1e-3 = share of pixels whose every channel differs by <= 1e-3; FLIP/rel_mse from "
@@ -314,9 +331,11 @@ def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     cmdline = shlex.join(getattr(sys, "orig_argv", [sys.executable, *sys.argv]))
     args.root = str(Path(args.root).resolve())
-    if args.traversal not in layerbvh.MODES:
-        print(f"third_party: --traversal must be one of {', '.join(layerbvh.MODES)}", file=sys.stderr)
-        return 2
+    for flag, value in (("--traversal", args.traversal), ("--media-traversal", args.media_traversal)):
+        if value not in layerbvh.TRACE_MODES:
+            print(f"third_party: {flag} must be one of {', '.join(layerbvh.TRACE_MODES)}, got {value}",
+                  file=sys.stderr)
+            return 2
     if args.workers is not None and args.workers < 1:
         print(f"third_party: --workers must be >= 1, got {args.workers}", file=sys.stderr)
         return 2
@@ -327,8 +346,8 @@ def main(argv=None) -> int:
     scenes, missing = _find_scenes(root, args.scenes)
     for pat in missing:
         print(f"note: {pat} not found under {root}; skipped", file=sys.stderr)
-    settings = {"traversal": args.traversal, "res": list(args.res), "spp": args.spp, "seed": args.seed,
-                "variant": args.variant, "check_rays": args.check_rays}
+    settings = {"traversal": args.traversal, "media_traversal": args.media_traversal, "res": list(args.res),
+                "spp": args.spp, "seed": args.seed, "variant": args.variant, "check_rays": args.check_rays}
     points = make_points("third_party", [(str(s), s.relative_to(root).as_posix()) for s in scenes], [settings])
     workers = None if args.scheduler else (args.workers or os.cpu_count() or 1)
     try:
@@ -353,7 +372,8 @@ def main(argv=None) -> int:
         atomic.splice_section(ROOT / "README.md", "third_party", readme_body(md))
     if args.json:
         raw = {"command": cmdline, "root": args.root, "res": args.res, "spp": args.spp, "seed": args.seed,
-               "traversal": args.traversal, "variant": args.variant, "timeout_s": args.timeout,
+               "traversal": args.traversal, "media_traversal": args.media_traversal, "variant": args.variant,
+               "timeout_s": args.timeout,
                "total_s": sweep.wall_s, "sweep": str(sweep.out), "cluster": sweep.cluster, "reused": reused,
                "missing": missing, "scenes": rows}
         atomic.write_text(args.json, json.dumps(raw, indent=2) + "\n")

@@ -65,12 +65,12 @@ def test_the_wrappers_own_channels_come_from_our_hits(tmp_path):
     assert metrics.same_seed_verdict(stock, ours)["passed"]
 
 
-def test_a_wrapper_around_anything_but_path_direct_or_volpath_is_still_refused(tmp_path):
-    text = CBOX.read_text().replace(PATH, '<integrator type="moment"><integrator type="volpathmis"/></integrator>')
-    scene_path = tmp_path / "volpathmis.xml"
+def test_a_wrapper_around_an_integrator_we_do_not_mirror_is_still_refused(tmp_path):
+    text = CBOX.read_text().replace(PATH, '<integrator type="moment"><integrator type="prb"/></integrator>')
+    scene_path = tmp_path / "prb.xml"
     scene_path.write_text(text)
     mi_ = use_variant()
-    with pytest.raises(Exception, match=r"moment\(volpathmis\)"):
+    with pytest.raises(Exception, match=r"moment\(prb\)"):
         path_settings(mi_, testing.load(scene_path, (8, 8)), scene_path=scene_path)
 
 

@@ -138,10 +138,10 @@ def test_integrators_are_named_by_what_they_wrap(integrator, name):
     assert integrator_name(mi.load_dict(integrator)) == name
 
 
-def test_a_wrapped_volpathmis_scene_is_named_as_what_it_is(tmp_path, capsys):
-    """Refused by its own name without --as-path; with it, report.json says what the scene asked
-    for and the depth comes from the volpathmis inside. The same scene with volpath compares as
-    it is: ours inside the wrapper."""
+def test_a_wrapped_scene_we_do_not_mirror_is_named_as_what_it_is(tmp_path, capsys):
+    """moment(prb): refused by its own name without --as-path; with it, report.json says what the
+    scene asked for and the depth comes from the prb inside. The same scene with volpath or
+    volpathmis compares as it is: ours inside the wrapper."""
     def fog(integrator):
         scene = tmp_path / f"fog_{integrator}.xml"
         scene.write_text(f"""<scene version="3.0.0">
@@ -151,14 +151,16 @@ def test_a_wrapped_volpathmis_scene_is_named_as_what_it_is(tmp_path, capsys):
         </film></sensor><emitter type="constant"/>
         <shape type="rectangle"><transform name="to_world"><translate z="3"/></transform></shape></scene>""")
         return scene
-    scene = fog("volpathmis")
+    scene = fog("prb")
     assert main(["compare", str(scene), "--out", str(tmp_path / "no"), "--no-progress"]) == 2
-    assert "moment(volpathmis)" in _err(capsys)
+    assert "moment(prb)" in _err(capsys)
     assert main(["compare", str(scene), "--out", str(tmp_path / "cmp"), "--as-path", "--spp", "4",
                  "--no-progress"]) == 0
     rep = json.loads((tmp_path / "cmp" / "report.json").read_text())
-    assert rep["scene_integrator"] == "moment(volpathmis)" and rep["integrator"]["max_depth"] == 3, rep["integrator"]
-    assert main(["compare", str(fog("volpath")), "--out", str(tmp_path / "vp"), "--spp", "4", "--no-progress"]) == 0
-    rep = json.loads((tmp_path / "vp" / "report.json").read_text())
-    assert rep["scene_integrator"] == rep["compared_as"] == "moment(volpath)", rep["compared_as"]
-    assert rep["integrator"]["max_depth"] == 3 and rep["verdict"]["passed"], rep["verdict"]
+    assert rep["scene_integrator"] == "moment(prb)" and rep["integrator"]["max_depth"] == 3, rep["integrator"]
+    for integrator in ("volpath", "volpathmis"):
+        out = tmp_path / integrator
+        assert main(["compare", str(fog(integrator)), "--out", str(out), "--spp", "4", "--no-progress"]) == 0
+        rep = json.loads((out / "report.json").read_text())
+        assert rep["scene_integrator"] == rep["compared_as"] == f"moment({integrator})", rep["compared_as"]
+        assert rep["integrator"]["max_depth"] == 3 and rep["verdict"]["passed"], rep["verdict"]

@@ -135,15 +135,16 @@ def embree_hits(v, f, o, d, tmax=None, with_t: bool = False) -> dict:
 
 
 def against_embree(name: str, v, f, o, d, tmax=None, extra: dict | None = None, notes: str = "",
-                   **build) -> CaseResult:
+                   traced: tuple | None = None, embree_ref: dict | None = None, **build) -> CaseResult:
     """The standard ray-level verdict. Where ours and Embree (default or robust) disagree, an exact
     float64 test of the triangles each side names decides who is wrong (`embree.wrong_answers`).
     Pass: the modes agree bit for bit, no NaN/Inf hit, and we are wrong on at most REAL_RATE x
-    rays. `extra` adds {label: (value, must_be_zero)} figures."""
+    rays. `extra` adds {label: (value, must_be_zero)} figures. `traced` and `embree_ref`: what
+    the case already has from `trace_modes` and `embree_hits` for these rays (not traced again)."""
     v32 = np.asarray(v, np.float32)
     o, d = np.asarray(o, np.float32), np.asarray(d, np.float32)
-    _, h, mode_diff = trace_modes(v32, f, o, d, tmax, **build)
-    ref = embree_hits(v32, f, o, d, tmax)
+    _, h, mode_diff = traced if traced is not None else trace_modes(v32, f, o, d, tmax, **build)
+    ref = embree_ref if embree_ref is not None else embree_hits(v32, f, o, d, tmax)
     dis = {r: embree.disagreements(v32, f, o, d, h.prim, p) for r, p in ref.items()}
     own = embree.disagreements(v32, f, o, d, ref[False], ref[True])
     rays = np.unique(np.concatenate([dis[False]["real_idx"], dis[True]["real_idx"], own["real_idx"]]))
@@ -250,10 +251,11 @@ def sliver_triangles(scale):
                       np.zeros(n)], 1)
     side = np.where(rng.random(n) < 0.5, 1.0, -1.0)[:, None]
     o, d, t = aimed_rays(local @ rot.T, side * rot[:, 2], rng.uniform(1, 100, n), rng, spread=1.2)
-    _, h, _ = trace_modes(v.astype(np.float32), f, o, d)
+    traced = trace_modes(v.astype(np.float32), f, o, d)
+    h = traced[1]
     emb = embree_hits(v, f, o, d)
     leaks = int((h.prim == MISS).sum())
-    return against_embree("sliver_triangles", v, f, o, d,
+    return against_embree("sliver_triangles", v, f, o, d, traced=traced, embree_ref=emb,
                           extra={"leaks": (leaks, True), "Embree leaks": (int((emb[False] == MISS).sum()), False),
                                  "robust leaks": (int((emb[True] == MISS).sum()), False)},
                           notes="a leak: a ray aimed inside the strip that misses it")
@@ -297,7 +299,8 @@ def degenerate_triangles(scale):
     v2, f2, is_deg, orig = degenerate_mix(v, f, rng)
     o, d = random_rays(v, _n(scale), rng)
     _, clean, _ = trace_modes(v.astype(np.float32), f, o, d)
-    _, h, _ = trace_modes(v2.astype(np.float32), f2, o, d)
+    traced = trace_modes(v2.astype(np.float32), f2, o, d)
+    h = traced[1]
     hit = h.prim != MISS
     on_degenerate = int(is_deg[h.prim[hit]].sum())
     mapped = np.where(hit, orig[np.where(hit, h.prim, 0)], -1)
@@ -305,7 +308,7 @@ def degenerate_triangles(scale):
     changed = int(((mapped != want) | (h.t != clean.t) | (h.u != clean.u) | (h.v != clean.v)).sum())
     emb = embree_hits(v2, f2, o, d)
     emb_deg = int(sum(is_deg[p[p != MISS]].sum() for p in emb.values()))
-    return against_embree("degenerate_triangles", v2, f2, o, d,
+    return against_embree("degenerate_triangles", v2, f2, o, d, traced=traced, embree_ref=emb,
                           extra={"hits on degenerate triangles": (on_degenerate, True),
                                  "rays whose hit differs from the clean mesh's": (changed, True),
                                  "Embree hits on degenerate triangles": (emb_deg, False)},
@@ -374,11 +377,12 @@ def coplanar_overlap(scale):
     # 3. The same set turned at random: coplanar only up to rounding; report who picks the lowest.
     rot = random_rotation(rng)
     rv, ro, rd = pv @ rot.T, po @ rot.T.astype(np.float32), pd @ rot.T.astype(np.float32)
-    res = against_embree("coplanar_overlap", rv, pf, ro, rd,
+    turned = trace_modes(rv.astype(np.float32), pf, ro, rd)
+    rh = turned[1]
+    res = against_embree("coplanar_overlap", rv, pf, ro, rd, traced=turned,
                          extra={"duplicate hits not on the lower copy": (dup_wrong, True),
                                 "z = 0 hits not on the lowest covering id": (plane_wrong, True),
                                 "Embree hits on the higher duplicate": (emb_second, False)})
-    _, rh, _ = trace_modes(rv.astype(np.float32), pf, ro, rd)
     ours_lowest = float(np.mean(rh.prim[decided] == want[decided]))
     res.tried = 3 * n
     res.notes += (f"; z = 0: Embree picks the lowest id on {100 * emb_lowest:.1f}% of rays; turned plane: "
@@ -440,9 +444,10 @@ def grazing_rays(scale):
     # Rounding can put an origin on the plane (height ~1e-18): such rays are neither.
     must_hit = (t_cross > 0) & inside & (height > 1e-12)
     must_miss = (t_cross <= 0) & (height > 1e-12)
-    _, h, _ = trace_modes(v.astype(np.float32), f, o, d)
+    traced = trace_modes(v.astype(np.float32), f, o, d)
+    h = traced[1]
     emb = embree_hits(v, f, o, d)
-    return against_embree("grazing_rays", v, f, o, d,
+    return against_embree("grazing_rays", v, f, o, d, traced=traced, embree_ref=emb,
                           extra={"must-hit rays that miss": (int((must_hit & (h.prim == MISS)).sum()), True),
                                  "must-miss rays that hit": (int((must_miss & (h.prim != MISS)).sum()), True),
                                  "Embree must-hit misses": (int((must_hit & (emb[False] == MISS)).sum()), False),
