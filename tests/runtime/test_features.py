@@ -25,7 +25,7 @@ POINT_LIT = """<scene version="3.0.0">
 
 
 def _render(scene, **props):
-    integ = mi.load_dict({"type": "layerbvh", "max_depth": 5, "traversal": "layer_sorted", **props})
+    integ = mi.load_dict({"type": "layerbvh", "max_depth": 3, "traversal": "layer_sorted", **props})  # (3: for time)
     img = np.array(mi.render(scene, integrator=integ, spp=8, seed=2))
     return img, integ.last_stats.features.as_dict()
 
