@@ -791,8 +791,8 @@ for _medium, _what, _params in (
         ("medium_back_faces", "the block's normals flipped and the medium its exterior: rays enter through back "
          "faces, volpath", {"flip": "true", "side": "exterior"})):
     case(_medium, "image", _what)(
-        # (max_depth 4: between kernels each collision is a loop iteration; the suite's time)
-        lambda scale, _medium=_medium, _params=_params: image_case(_medium, "medium", scale, max_depth="4",
+        # (max_depth 4, 8 spp: between kernels each collision is a loop iteration; the suite's time)
+        lambda scale, _medium=_medium, _params=_params: image_case(_medium, "medium", scale, spp=8, max_depth="4",
                                                                    **_params))
 
 for _depth in (1, 2, 64):
