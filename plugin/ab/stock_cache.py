@@ -18,28 +18,34 @@ class SceneFilesError(ValueError):
     stock render cannot be cached."""
 
 
-def scene_files(scene: Path, _seen=None) -> list[Path]:
-    """The XML file and every file it references (meshes, textures, included XML, recursively)."""
+def scene_files(scene: Path, _seen=None, _base: Path | None = None, _defaults: dict | None = None) -> list[Path]:
+    """The XML file and every file it references (meshes, textures, included XML, recursively).
+    As Mitsuba resolves them: a relative name in an <include>d file is found next to that file or
+    next to the scene file (Mitsuba's file resolver holds the scene's folder: Mitsuba's own test
+    scenes include `include/preamble.xml` from a file in include/), and $parameters keep the values
+    the including file gave them."""
     seen = _seen if _seen is not None else set()
     scene = scene.resolve()
     if scene in seen:
         return []
     seen.add(scene)
+    base = _base or scene.parent
     try:
         root = ET.parse(scene).getroot()
     except ET.ParseError as e:
         raise SceneFilesError(f"scene {scene}: not valid XML ({e})") from None
-    defaults = {d.get("name"): d.get("value") for d in root.iter("default")}
+    defaults = {**{d.get("name"): d.get("value") for d in root.iter("default")}, **(_defaults or {})}
     files = [scene]
     for el in root.iter():
         ref = el.get("filename") if el.tag == "include" else (
             el.get("value") if el.get("name") == "filename" else None)
         if ref is None:
             continue
-        path = (scene.parent / substituted(ref, defaults)).resolve()
-        if not path.is_file():
+        name = substituted(ref, defaults)
+        path = next((c for c in ((scene.parent / name).resolve(), (base / name).resolve()) if c.is_file()), None)
+        if path is None:
             raise SceneFilesError(f"scene {scene.name}: referenced file not found: {ref}")
-        files += scene_files(path, seen) if path.suffix == ".xml" else [path]
+        files += scene_files(path, seen, base, defaults) if path.suffix == ".xml" else [path]
     return files
 
 

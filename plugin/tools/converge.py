@@ -410,8 +410,8 @@ def run(mi, s: ConvergeSettings) -> dict:
     scene = load_scene(mi, str(scene_path), s.res)
     load_s = time.perf_counter() - t0
     path = path_settings(mi, scene, s.as_path, scene_path)
-    if path.wrapper is not None:  # the wrapper adds channels, not error: its inner path tracer is scored
-        path.note = (f"the scene's integrator is {path.scene_integrator}; its radiance (the path tracer inside) "
+    if path.wrapper is not None:  # the wrapper adds channels, not error: its inner estimator is scored
+        path.note = (f"the scene's integrator is {path.scene_integrator}; its radiance (the {path.estimator} inside) "
                      f"is scored, its other channels are not")
     props = path.props
     size = [int(x) for x in scene.sensors()[0].film().crop_size()]
@@ -432,12 +432,14 @@ def run(mi, s: ConvergeSettings) -> dict:
             bar.total = bar.n + (len(configs) - i - 1) * (int(math.log2(max_spp)) + 1)
     table = equal_time_error_table(configs)
     title = (f"{scene_path.name}: {size[0]}x{size[1]}, budget {s.budget:g} s per configuration, "
-             f"reference stock path at {s.ref_spp} spp, {mi.variant()}"
+             f"reference stock {path.estimator} at {s.ref_spp} spp, {mi.variant()}"
              + (f"; {path.note}" if path.note else ""))
     doc = {
         "scene": str(scene_path), "resolution": size, "variant": mi.variant(), "budget_s": s.budget,
         "max_spp": max_spp, "scene_load_s": load_s, "integrator": props,
-        "scene_integrator": path.scene_integrator, "compared_as": "path" + (" (--as-path)" if path.as_path else " (the wrapper's radiance)" if path.wrapper else ""),
+        "scene_integrator": path.scene_integrator,
+        "compared_as": path.estimator + (" (--as-path)" if path.as_path else " (the wrapper's radiance)" if path.wrapper
+                                         else ""),
         "reference": {k: ref_info[k] for k in ("path", "key", "cached", "render_s")} | {"spp": s.ref_spp},
         "configs": [{"name": c.name, "traversal": c.traversal or "stock (Embree)", "treelet_height":
                      None if c.stock or c.traversal == "per_ray" else c.treelet_height,

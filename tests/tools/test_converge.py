@@ -93,6 +93,18 @@ def test_reference_key_follows_content(tmp_path):
         reference_key(tmp_path / "scene.xml", settings)
 
 
+def test_scene_files_resolve_as_mitsuba_does():
+    """Regression: Mitsuba's media test scenes include include/test-scene-base.xml, which includes
+    `include/preamble.xml` and references `meshes/...`: names Mitsuba finds from the scene's
+    folder, not the including file's. The key read them there and refused the scene (converge
+    failed on every media scene)."""
+    from layerbvh_mitsuba.ab.stock_cache import scene_files
+    files = {p.relative_to(SCENES / "media").as_posix()
+             for p in scene_files(SCENES / "media" / "test_homo_spectral_sigmat_volpathmis.xml")}
+    assert {"include/test-scene-base.xml", "include/preamble.xml"} <= files, files
+    assert any(f.startswith("meshes/") for f in files), files
+
+
 def test_bad_configs_are_named(capsys):
     assert [c.name for c in parse_configs("stock, per_ray, layer_sorted:6")] == ["stock", "per_ray", "layer_sorted:6"]
     for text, word in (("stock,foo", "foo"), ("layer_sorted:x", "layer_sorted:x"), ("per_ray,per_ray", "twice"),
