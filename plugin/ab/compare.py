@@ -12,6 +12,7 @@ import numpy as np
 
 import layerbvh
 from layerbvh_mitsuba.ab import metrics
+from layerbvh_mitsuba.ab.page import split_share
 from layerbvh_mitsuba.ab.render import (
     PathSettings,
     TimedRender,
@@ -168,8 +169,8 @@ class Comparison:
         split = ""
         if self.control_time is not None:
             sp = self.split()
-            split = (f"; our loop with Embree {self.control_time.render_s:.2f} s: traversal {sp['traversal_s']:.2f} s, "
-                     f"loop {sp['loop_s']:.2f} s")
+            split = (f"; our loop with Embree {self.control_time.render_s:.2f} s: traversal "
+                     f"{split_share(sp['traversal_s'])}, loop {split_share(sp['loop_s'])}")
         return (f"stock {st:.2f} s, layerbvh {ou:.2f} s{ratio}{split} (not counted: build {self.stats.build_s:.2f} s, "
                 f"compile {self.ours_time.compile_s:.2f} s, calibration {self.ours_time.calibration_s:.2f} s); "
                 f"rmse {m['rmse']:.3g}, FLIP {m['flip_mean']:.3g}, pixels > 1e-3: "

@@ -38,6 +38,12 @@ TIMINGS = (
 SIDES = (("stock", "stock path (Embree)"), ("embree_control", "our loop + Embree"), ("ours", "ours (layerbvh)"))
 
 
+def split_share(seconds: float) -> str:
+    """One share of the time split (compare.Comparison.split), for people: a difference of two timings,
+    so one below zero says "no measurable cost", not a time."""
+    return f"{seconds:.2f} s" if seconds >= 0 else f"~0 s ({seconds:.2f} s: within timing noise)"
+
+
 def _g(x, unit: str = "") -> str:
     if x is None:
         return "—"
@@ -192,8 +198,9 @@ def _timing_table(rep: dict) -> str:
     split = rep.get("split")
     note = ""
     if isinstance(split, dict) and split.get("traversal_s") is not None:
-        note = (f'<p>Of our render time over stock\'s, <b>{_g(split["loop_s"], "s")}</b> is the loop (our loop with '
-                f'Embree\'s queries against stock) and <b>{_g(split["traversal_s"], "s")}</b> is the traversal (ours '
+        loop, traversal = (html.escape(split_share(split[k])) for k in ("loop_s", "traversal_s"))
+        note = (f'<p>Of our render time over stock\'s, <b>{loop}</b> is the loop (our loop with '
+                f'Embree\'s queries against stock) and <b>{traversal}</b> is the traversal (ours '
                 f'against our loop with Embree\'s queries).</p>')
     return (f"<table><tr><th>time</th>{head}<th>ours ÷ stock</th><th>meaning</th></tr>\n" + _rows(rows)
             + "</table>\n" + note)

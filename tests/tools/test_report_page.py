@@ -122,3 +122,11 @@ def test_summary_page_of_the_pytest_plugin(browser, tmp_path):
     images = browser.execute_script("return Array.from(document.images).map(i => [i.complete, i.naturalWidth])")
     assert images == [[True, 16]]
     assert browser.find_element("css selector", "h1").text == "layerbvh checks: 1 passed, 1 failed"
+
+
+def test_a_share_of_the_time_split_below_zero_is_not_shown_as_a_time():
+    """The split's shares are differences of two timings (on media scenes our loop with Embree ran
+    as fast as stock: "loop -0.09 s" was printed)."""
+    from layerbvh_mitsuba.ab.page import split_share
+    assert split_share(0.25) == "0.25 s"
+    assert split_share(-0.09) == "~0 s (-0.09 s: within timing noise)"
