@@ -238,13 +238,22 @@ def _xml_wrapper(el, defaults: dict) -> tuple[Wrapper | None, dict]:
     return (None, {}) if nested is None else (Wrapper(kind, tuple(props), nested, leaf=nested.leaf), path)
 
 
-def _scene_integrator(path: Path, defaults: dict, seen: set):
+def referenced_file(name: str, including: Path, scene_dir: Path) -> Path | None:
+    """Where Mitsuba finds a relative file name written in `including` (the scene file or a file
+    it <include>s): next to that file, else in the scene file's folder, which Mitsuba's file
+    resolver holds (Mitsuba's own test scenes include `include/preamble.xml` from a file in
+    include/); None if neither holds it."""
+    return next((c for c in ((including.parent / name).resolve(), (scene_dir / name).resolve()) if c.is_file()), None)
+
+
+def _scene_integrator(path: Path, defaults: dict, seen: set, scene_dir: Path | None = None):
     """The first <integrator> of a scene file in document order, <include>d files read where they
     stand (as Mitsuba merges them); None if there is none or a file cannot be read."""
     path = path.resolve()
     if path in seen:
         return None
     seen.add(path)
+    scene_dir = scene_dir or path.parent
     try:
         root = ET.parse(path).getroot()
     except (OSError, ET.ParseError):
@@ -255,7 +264,8 @@ def _scene_integrator(path: Path, defaults: dict, seen: set):
         if el.tag == "integrator":
             return el
         if el.tag == "include" and el.get("filename"):
-            found = _scene_integrator(path.parent / substituted(el.get("filename"), defaults), defaults, seen)
+            included = referenced_file(substituted(el.get("filename"), defaults), path, scene_dir)
+            found = None if included is None else _scene_integrator(included, defaults, seen, scene_dir)
             if found is not None:
                 return found
     return None
@@ -281,8 +291,8 @@ class PathSettings:
     `estimator`: the scene's estimator, `path`, `direct`, `volpath` or `volpathmis` (ours stands
     in for it: runtime.registry.STANDS_IN_FOR). `props`: its settings (path, volpath: max_depth,
     rr_depth, hide_emitters; volpathmis: those and use_spectral_mis; direct: emitter_samples,
-    bsdf_samples, hide_emitters; only those the scene sets). `scene_integrator`: the scene's integrator (`integrator_name`). `wrapper`: the scene's `aov`/`moment` around its
-    estimator, kept on both sides (stock's estimator inside on one, ours on the other).
+    bsdf_samples, hide_emitters; only those the scene sets). `scene_integrator`: the scene's
+    integrator (`integrator_name`). `wrapper`: the scene's `aov`/`moment` around its estimator, kept on both sides (stock's estimator inside on one, ours on the other).
     `as_path`: the scene's integrator is neither path nor such a wrapper and the user asked to
     compare it as path (`--as-path`); `note` says what was taken from it."""
 

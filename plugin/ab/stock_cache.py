@@ -10,7 +10,14 @@ from pathlib import Path
 import numpy as np
 
 from layerbvh_mitsuba import atomic
-from layerbvh_mitsuba.ab.render import load_integrator, read_exr, render_passes, substituted, write_exr
+from layerbvh_mitsuba.ab.render import (
+    load_integrator,
+    read_exr,
+    referenced_file,
+    render_passes,
+    substituted,
+    write_exr,
+)
 
 
 class SceneFilesError(ValueError):
@@ -19,10 +26,8 @@ class SceneFilesError(ValueError):
 
 
 def scene_files(scene: Path, _seen=None, _base: Path | None = None, _defaults: dict | None = None) -> list[Path]:
-    """The XML file and every file it references (meshes, textures, included XML, recursively).
-    As Mitsuba resolves them: a relative name in an <include>d file is found next to that file or
-    next to the scene file (Mitsuba's file resolver holds the scene's folder: Mitsuba's own test
-    scenes include `include/preamble.xml` from a file in include/), and $parameters keep the values
+    """The XML file and every file it references (meshes, textures, included XML, recursively),
+    found where Mitsuba finds them (`render.referenced_file`), with $parameters keeping the values
     the including file gave them."""
     seen = _seen if _seen is not None else set()
     scene = scene.resolve()
@@ -42,7 +47,7 @@ def scene_files(scene: Path, _seen=None, _base: Path | None = None, _defaults: d
         if ref is None:
             continue
         name = substituted(ref, defaults)
-        path = next((c for c in ((scene.parent / name).resolve(), (base / name).resolve()) if c.is_file()), None)
+        path = referenced_file(name, scene, base)
         if path is None:
             raise SceneFilesError(f"scene {scene.name}: referenced file not found: {ref}")
         files += scene_files(path, seen, base, defaults) if path.suffix == ".xml" else [path]

@@ -20,6 +20,11 @@ STANDS_IN_FOR = {"path": "layerbvh", "direct": "layerbvh_direct", "volpath": "la
 _classes: dict[tuple[str, str], type] = {}
 
 
+def handles_media(estimator: str) -> bool:
+    """Whether ours standing in for Mitsuba's `estimator` renders participating media (VOLUMETRIC)."""
+    return PLUGINS[STANDS_IN_FOR[estimator]][1].VOLUMETRIC
+
+
 def is_jit_variant(variant: str | None) -> bool:
     return bool(variant) and variant.split("_", 1)[0] in ("llvm", "cuda")
 

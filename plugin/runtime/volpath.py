@@ -116,6 +116,7 @@ class LayerBVHVolPath(LayerBVHPathTracer):
     """
 
     VOLUMETRIC = True
+    STATE = VolPathState  # the loop's state (volpathmis: its own)
 
     def __init__(self, props: mi.Properties):
         LayerBVHPathTracer.__init__(self, props)
@@ -182,15 +183,19 @@ class LayerBVHVolPath(LayerBVHPathTracer):
             channels = dr.size_v(mi.Spectrum)
             channel = mi.UInt32(dr.minimum(sampler.next_1d(active) * channels, channels - 1))
         medium = dr.zeros(mi.MediumPtr, n) if medium is None else dr.full(mi.MediumPtr, medium, n)
-        state = VolPathState(
-            active=active, depth=dr.zeros(mi.UInt32, n), ray=ray, throughput=dr.full(mi.Spectrum, 1, n),
-            result=dr.zeros(mi.Spectrum, n), si=dr.zeros(mi.SurfaceInteraction3f, n),
-            mei=dr.zeros(mi.MediumInteraction3f, n), medium=medium, eta=dr.full(mi.Float, 1, n),
-            last_scatter_event=dr.zeros(mi.Interaction3f, n), last_scatter_direction_pdf=dr.full(mi.Float, 1, n),
-            needs_intersection=dr.full(mi.Bool, True, n),
-            specular_chain=active & (not self.hide_emitters),
-            valid_ray=dr.full(mi.Bool, (not self.hide_emitters) and scene.environment() is not None, n))
+        state = self.STATE(
+            active=active, depth=dr.zeros(mi.UInt32, n), ray=ray, result=dr.zeros(mi.Spectrum, n),
+            si=dr.zeros(mi.SurfaceInteraction3f, n), mei=dr.zeros(mi.MediumInteraction3f, n), medium=medium,
+            eta=dr.full(mi.Float, 1, n), last_scatter_event=dr.zeros(mi.Interaction3f, n),
+            needs_intersection=dr.full(mi.Bool, True, n), specular_chain=active & (not self.hide_emitters),
+            valid_ray=dr.full(mi.Bool, (not self.hide_emitters) and scene.environment() is not None, n),
+            **self._start_weights(n))
         return state, channel
+
+    def _start_weights(self, n: int) -> dict:
+        """The first state's fields that carry the path's weight (volpath: its throughput and the
+        last scattering's direction pdf; volpathmis: its ratios)."""
+        return {"throughput": dr.full(mi.Spectrum, 1, n), "last_scatter_direction_pdf": dr.full(mi.Float, 1, n)}
 
     @staticmethod
     def _hit(queries, ray: mi.Ray3f, active, hint: str) -> mi.SurfaceInteraction3f:

@@ -49,24 +49,20 @@ class PathWeights:
         return mi.UnpolarizedSpectrum(dr.select(active, dr.select(dr.isfinite(ratio), ratio, 0), w))
 
     def weight(self, w) -> mi.UnpolarizedSpectrum:
-        """The path's MIS-weighted throughput (stock's `mis_weight(p_over_f)`)."""
+        """The path's MIS-weighted throughput (stock's `mis_weight(p_over_f)`): per channel n over
+        its row's sum (spectral MIS), else 1 / (p/f); 0 where that is undefined."""
         if self.spectral_mis:
-            return self._balance(w)
-        return dr.select(dr.min(dr.abs(w), axis=0) == 0, 0, dr.rcp(w))
+            out = dr.zeros(mi.UnpolarizedSpectrum, dr.width(w[0]))
+            for i, row in enumerate(w):
+                total = dr.sum(row, axis=0)
+                out[i] = dr.select(total == 0, 0, self.n / total)
+            return out
+        return dr.select(dr.min(dr.abs(w), axis=0) == 0, 0, 1 / w)
 
     def weight2(self, a, b) -> mi.UnpolarizedSpectrum:
-        """The MIS-weighted throughput of one path found by two techniques (stock's `mis_weight(p1, p2)`)."""
-        if self.spectral_mis:
-            return self._balance([x + y for x, y in zip(a, b)])
-        s = a + b
-        return dr.select(dr.min(dr.abs(s), axis=0) == 0, 0, 1 / s)
-
-    def _balance(self, rows) -> mi.UnpolarizedSpectrum:
-        out = dr.zeros(mi.UnpolarizedSpectrum, dr.width(rows[0]))
-        for i, row in enumerate(rows):
-            total = dr.sum(row, axis=0)
-            out[i] = dr.select(total == 0, 0, self.n / total)
-        return out
+        """The MIS-weighted throughput of one path found by two techniques (stock's `mis_weight(p1, p2)`):
+        the weight of the two sets of ratios summed."""
+        return self.weight([x + y for x, y in zip(a, b)] if self.spectral_mis else a + b)
 
     def any_nonzero(self, w, nee):
         """Stock's shadow-loop condition: light can still pass (spectral MIS: the weight of the
@@ -148,6 +144,8 @@ class LayerBVHVolPathMIS(LayerBVHVolPath):
     ``use_spectral_mis`` (true) as in ``volpathmis``; ``traversal`` and the rest as in
     ``layerbvh``. Polarized variants are refused (as stock)."""
 
+    STATE = VolPathMISState
+
     def __init__(self, props: mi.Properties):
         if mi.is_polarized:
             raise ValueError(f"layerbvh_volpathmis: volpathmis does not support polarized variants (as stock); the "
@@ -156,22 +154,9 @@ class LayerBVHVolPathMIS(LayerBVHVolPath):
         LayerBVHVolPath.__init__(self, props)
         self.weights = PathWeights(self.use_spectral_mis)
 
-    def _start(self, scene, sampler, ray: mi.Ray3f, medium, active) -> tuple[VolPathMISState, object]:
-        n = dr.width(active)
-        channel = mi.UInt32(0)
-        if mi.is_rgb:
-            channels = dr.size_v(mi.Spectrum)
-            channel = mi.UInt32(dr.minimum(sampler.next_1d(active) * channels, channels - 1))
-        medium = dr.zeros(mi.MediumPtr, n) if medium is None else dr.full(mi.MediumPtr, medium, n)
-        state = VolPathMISState(
-            active=active, depth=dr.zeros(mi.UInt32, n), ray=ray, p_over_f=self.weights.ones(n),
-            p_over_f_nee=self.weights.ones(n), result=dr.zeros(mi.Spectrum, n),
-            si=dr.zeros(mi.SurfaceInteraction3f, n), mei=dr.zeros(mi.MediumInteraction3f, n), medium=medium,
-            eta=dr.full(mi.Float, 1, n), last_scatter_event=dr.zeros(mi.Interaction3f, n),
-            last_event_was_null=dr.full(mi.Bool, False, n), needs_intersection=dr.full(mi.Bool, True, n),
-            specular_chain=active & (not self.hide_emitters),
-            valid_ray=dr.full(mi.Bool, (not self.hide_emitters) and scene.environment() is not None, n))
-        return state, channel
+    def _start_weights(self, n: int) -> dict:
+        return {"p_over_f": self.weights.ones(n), "p_over_f_nee": self.weights.ones(n),
+                "last_event_was_null": dr.full(mi.Bool, False, n)}
 
     # -- one loop iteration ---------------------------------------------------------------------
     def _iteration(self, scene, sampler, use, queries, s: VolPathMISState, channel, megakernel: bool, hint: str):

@@ -49,6 +49,7 @@ from layerbvh_mitsuba.ab.render import UserError, load_scene, path_settings, use
 from layerbvh_mitsuba.repo import ROOT
 from layerbvh_mitsuba.runtime.adapter import UnsupportedShapeError
 from layerbvh_mitsuba.runtime.features import scene_media
+from layerbvh_mitsuba.runtime.registry import handles_media
 from layerbvh_mitsuba.runtime.settings import Traversal
 from layerbvh_mitsuba.tools.sweep.grid import Limits, make_points, run_sweep
 
@@ -183,7 +184,7 @@ def run_worker(args) -> dict:
     rec["integrator"] = {**path.props, **overrides}
     rec["compared_as"] = path.compared_as
     traversal = args.traversal
-    media = path.estimator in ("volpath", "volpathmis") and bool(scene_media(scene))
+    media = handles_media(path.estimator) and bool(scene_media(scene))
     if media:
         traversal = args.media_traversal
     rec["traversal"] = traversal

@@ -85,3 +85,18 @@ def test_a_wrapper_from_an_included_file_is_read(tmp_path):
     mi_ = use_variant()
     path = path_settings(mi_, testing.load(scene_path, (8, 8)), scene_path=scene_path)
     assert path.wrapper is not None and path.compared_as == "moment(path)" and path.props["max_depth"] == 3
+
+
+def test_a_wrapper_in_a_nested_include_is_found_where_mitsuba_finds_it(tmp_path):
+    """An included file includes another by a name relative to the scene's folder (as Mitsuba's
+    media scenes do with include/preamble.xml): Mitsuba finds it there, so must we (before, the
+    wrapper was looked for next to the including file, not found, and the scene refused)."""
+    (tmp_path / "include").mkdir()
+    (tmp_path / "include" / "base.xml").write_text('<scene version="3.0.0"><include filename="include/integ.xml"/>'
+                                                   '</scene>')
+    (tmp_path / "include" / "integ.xml").write_text('<scene version="3.0.0"><integrator type="moment">'
+                                                    '<integrator type="path"/></integrator></scene>')
+    scene_path = tmp_path / "main.xml"
+    scene_path.write_text(CBOX.read_text().replace(PATH, '<include filename="include/base.xml"/>'))
+    path = path_settings(use_variant(), testing.load(scene_path, (8, 8)), scene_path=scene_path)
+    assert path.wrapper is not None and path.compared_as == "moment(path)"
