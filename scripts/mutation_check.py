@@ -173,6 +173,18 @@ MUTATIONS = (
              "    lo_out = np.nextafter(b.lo, np.float32(-np.inf))\n    hi_out = np.nextafter(b.hi, np.float32(np.inf))\n",
              "    lo_out, hi_out = b.lo, b.hi\n",
              ("tests/tools/test_stability.py::test_case[axis_aligned_rays]",)),
+    Mutation("collector_runs_mid_recording", "the render no longer pauses Python's garbage collector while Dr.Jit "
+             "records it (issue 39: a dead scene's medium freed mid-recording aborts the process)",
+             "plugin/runtime/held_instances.py",
+             "            gc.disable()\n",
+             "            pass\n",
+             ("tests/runtime/test_held_instances.py::test_a_collection_during_recording_cannot_abort_the_render",)),
+    Mutation("slurm_controller_not_probed", "the sweep submits to SLURM without checking that a controller answers "
+             "(issue 39: an internal error and a half-made output folder)",
+             "plugin/tools/sweep/slurm.py",
+             "    _find_controller()\n    return settings\n",
+             "    return settings\n",
+             ("tests/tools/test_slurm.py::test_an_unreachable_controller_gets_one_line",)),
 )
 
 

@@ -6,14 +6,17 @@
 #   slurm.conf (one node: this machine, its cores and memory; partition `debug`) and a munge key
 #   under $LAYERBVH_SLURM_DIR (default /tmp/layerbvh-slurm), starts munged (unless one runs),
 #   slurmctld and slurmd as root, and waits until `sinfo` shows the node idle. It prints the line
-#   to source: export SLURM_CONF=DIR/slurm.conf (sbatch, squeue and dask-jobqueue read it).
-# stop: ends exactly the processes start started (their pid files), nothing else.
+#   to source: export SLURM_CONF=DIR/slurm.conf (sbatch, squeue and dask-jobqueue read it). It also
+#   links that file as $XDG_CACHE_HOME/layerbvh/slurm/slurm.conf, which `layerbvh sweep --cluster
+#   slurm` uses when SLURM_CONF is unset and no other controller answers: nothing to source.
+# stop: ends exactly the processes start started (their pid files), nothing else, and removes the link.
 # status: sinfo and squeue of that cluster.
 # Needs root (the daemons run as root, packages come from apt) on a Debian-like system; refuses
 # with one line otherwise.
 set -euo pipefail
 DIR=${LAYERBVH_SLURM_DIR:-/tmp/layerbvh-slurm}
 CONF="$DIR/slurm.conf"
+LINK="${XDG_CACHE_HOME:-$HOME/.cache}/layerbvh/slurm/slurm.conf"  # (the sweep's slurm.local_cluster_conf)
 say() { printf 'slurm_local: %s\n' "$*" >&2; }
 
 need_root() {
@@ -85,11 +88,13 @@ start_munge() {
 
 alive() { local pid; pid=$(cat "$1" 2>/dev/null) && kill -0 "$pid" 2>/dev/null; }
 
+up() { mkdir -p "$(dirname "$LINK")" && ln -sfn "$CONF" "$LINK"; echo "export SLURM_CONF=$CONF"; }
+
 start() {
   need_root
   install_packages
   if alive "$DIR/slurmctld.pid" && alive "$DIR/slurmd.pid"; then
-    say "already running"; echo "export SLURM_CONF=$CONF"; return
+    say "already running"; up; return
   fi
   write_config
   start_munge
@@ -99,7 +104,7 @@ start() {
   taskset -c "$all" slurmd -f "$CONF"
   for _ in $(seq 100); do
     if SLURM_CONF=$CONF sinfo -h -o '%T' 2>/dev/null | grep -qx idle; then
-      echo "export SLURM_CONF=$CONF"; return
+      up; return
     fi
     sleep 0.2
   done
@@ -115,6 +120,7 @@ stop() {
     fi
     rm -f "$DIR/$f.pid"
   done
+  if [ "$(readlink "$LINK" 2>/dev/null)" = "$CONF" ]; then rm -f "$LINK"; fi
 }
 
 status() {

@@ -3,6 +3,7 @@ engine's tests (tests/engine) run without Mitsuba installed; tests/runtime/conft
 tests/tools/conftest.py set Mitsuba's variant for theirs."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -25,3 +26,27 @@ def procedural():
     v, f = meshes.procedural_mesh(120_000, seed=3)
     assert len(f) >= 100_000
     return v, f
+
+
+# The tests running now, kept in the file scripts/test.sh names, which prints them if it has to
+# stop a run that hangs (issue 39). Kept by the controller alone (xdist relays each worker's test
+# starts and ends to it), written then renamed: never read half-written.
+_RUNNING_FILE = os.environ.get("LAYERBVH_RUNNING_TESTS")
+_running: dict[str, None] = {}
+
+
+def _write_running() -> None:
+    if _RUNNING_FILE and not os.environ.get("PYTEST_XDIST_WORKER"):
+        tmp = f"{_RUNNING_FILE}.tmp"
+        Path(tmp).write_text("".join(f"{nodeid}\n" for nodeid in _running))
+        os.replace(tmp, _RUNNING_FILE)
+
+
+def pytest_runtest_logstart(nodeid, location):
+    _running[nodeid] = None
+    _write_running()
+
+
+def pytest_runtest_logfinish(nodeid, location):
+    _running.pop(nodeid, None)
+    _write_running()

@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from layerbvh_mitsuba.atomic import atomic_path
 from layerbvh_mitsuba.runtime.compile_clock import CompileClock
+from layerbvh_mitsuba.runtime.held_instances import instances_held
 from layerbvh_mitsuba.runtime.registry import STANDS_IN_FOR
 
 DEFAULT_VARIANT = "llvm_ad_rgb"  # Embree on the CPU, the same threads as our LLVM backend
@@ -401,8 +402,9 @@ def render_passes(mi, scene, integrator, spp: int, seed: int, label: str, progre
         for k in range(passes):
             n = min(per_pass, spp - done)
             try:
-                img = mi.render(scene, integrator=integrator, spp=n, seed=pass_seed(seed, k, passes))
-                dr.eval(img)
+                with instances_held():  # (stock's too: another thread, a progress bar's, may collect meanwhile)
+                    img = mi.render(scene, integrator=integrator, spp=n, seed=pass_seed(seed, k, passes))
+                    dr.eval(img)
             except RuntimeError as e:
                 _check_interrupt(integrator, e)
                 raise

@@ -4,6 +4,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from layerbvh_mitsuba.runtime.held_instances import instances_held
 from layerbvh_mitsuba.runtime.integrator import LayerBVHPathTracer, loop, mis_weight
 from layerbvh_mitsuba.runtime.record import RecordingQueries, bounce_kind
 
@@ -50,6 +51,7 @@ class LayerBVHDirect(LayerBVHPathTracer):
         self.weight_bsdf = 1 / self.bsdf_samples if self.bsdf_samples else 0.0
 
     # -- one camera ray per sample --------------------------------------------------------------
+    @instances_held()
     def sample(self, scene, sampler, ray, medium=None, active=True):
         state = self.scene_state(scene)
         start = self._begin(scene, state, ray)

@@ -17,6 +17,7 @@ from layerbvh_mitsuba.runtime.adapter import SceneTracer
 from layerbvh_mitsuba.runtime.cache import cache_dir
 from layerbvh_mitsuba.runtime.compile_clock import CompileClock
 from layerbvh_mitsuba.runtime.features import Features, plan_features
+from layerbvh_mitsuba.runtime.held_instances import instances_held
 from layerbvh_mitsuba.runtime.queries import EmbreeQueries, InlineQueries, RayQueries
 from layerbvh_mitsuba.runtime.record import RayRecorder, RecordingQueries, bounce_kind
 from layerbvh_mitsuba.runtime.settings import Traversal, check_settings
@@ -337,6 +338,7 @@ class LayerBVHPathTracer:
             calibration_s=self.calibration_s() - start["calibration_s"])
 
     # -- one ray per sample: the path tracer ----------------------------------------------------
+    @instances_held()
     def sample(self, scene, sampler, ray, medium=None, active=True):
         state = self.scene_state(scene)
         tracer = state.tracer

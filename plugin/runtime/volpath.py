@@ -6,6 +6,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from layerbvh_mitsuba.runtime.held_instances import instances_held
 from layerbvh_mitsuba.runtime.integrator import LayerBVHPathTracer, SceneState, loop, mis_weight
 
 UINT32_MAX = 2 ** 32 - 1  # stock keeps max_depth as uint32: -1 (infinite) is this
@@ -153,6 +154,7 @@ class LayerBVHVolPath(LayerBVHPathTracer):
                                          "camera" if i == 0 else "bounce")
 
     # -- one camera ray per sample ----------------------------------------------------------------
+    @instances_held()
     def sample(self, scene, sampler, ray, medium=None, active=True):
         state = self.scene_state(scene)
         start = self._begin(scene, state, ray)

@@ -35,7 +35,7 @@ def slurm(tmp_path_factory):
         pytest.skip("no SLURM and no apt-get to install it")
     folder = tmp_path_factory.mktemp("slurm")
     env = {**os.environ, "LAYERBVH_SLURM_DIR": str(folder), "LAYERBVH_SLURMCTLD_PORT": str(_free_port()),
-           "LAYERBVH_SLURMD_PORT": str(_free_port())}
+           "LAYERBVH_SLURMD_PORT": str(_free_port()), "XDG_CACHE_HOME": str(folder / "cache")}
     script = str(ROOT / "scripts" / "slurm_local.sh")
     r = subprocess.run(["bash", script, "start"], env=env, capture_output=True, text=True, timeout=300,
                        preexec_fn=lambda: os.sched_setaffinity(0, range(os.cpu_count() or 1)))
@@ -62,13 +62,19 @@ def _jobs(env, state="") -> list[str]:
 
 def test_sweep_on_slurm_matches_a_local_cluster(slurm, tmp_path):
     """Two scenes x two traversals through SLURM jobs: every point ok, the same verdicts and
-    metrics as the same sweep on a local cluster, the job script next to the results."""
+    metrics as the same sweep on a local cluster, the job script next to the results. The SLURM
+    sweep runs without SLURM_CONF: it finds the cluster slurm_local.sh started by the link that
+    script leaves (issue 39: nothing to source)."""
+    unsourced = {k: v for k, v in slurm.items() if k != "SLURM_CONF"}
     on_slurm = _sweep(tmp_path / "slurm", "--cluster", "slurm", "--slurm-jobs", "1", "--slurm-cores", "2",
-                      "--slurm-memory", "6", "--slurm-walltime", "00:10:00", env=slurm)
+                      "--slurm-memory", "6", "--slurm-walltime", "00:10:00", env=unsourced)
     local = _sweep(tmp_path / "local", "--workers", "2", env=slurm)
+    errs = []
     for p in (on_slurm, local):
         _, err = p.communicate(timeout=400)
         assert p.returncode == 0, err
+        errs.append(err)
+    assert f"SLURM_CONF={Path(slurm['SLURM_CONF']).resolve()}" in errs[0], errs[0]
     a, b = _rows(tmp_path / "slurm"), _rows(tmp_path / "local")
     assert len(a) == len(b) == 4 and all(r["status"] == "ok" for r in a + b)
     for ra, rb in zip(sorted(a, key=lambda r: r["key"]), sorted(b, key=lambda r: r["key"])):
@@ -162,3 +168,32 @@ def test_bad_slurm_options_get_one_line(tmp_path, args, env_path, says):
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 2 and len(lines) == 1 and says in lines[0], r.stderr
     assert not (tmp_path / "sw").exists()
+
+
+def _refused_sweep(tmp_path, env) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "layerbvh_mitsuba.cli", "sweep", str(SCENES / "cbox.xml"), "--job",
+                           "compare", "--out", str(tmp_path / "sw"), "--cluster", "slurm"],
+                          env=env, capture_output=True, text=True, timeout=90)
+
+
+def test_an_unreachable_controller_gets_one_line(tmp_path):
+    """sbatch on PATH but no controller to reach (SLURM_CONF unset, no slurm.conf of SLURM's own,
+    no local cluster linked; or SLURM_CONF naming a file that is not there): one line naming the
+    cause and what to do, exit 2, and no output folder (it was an internal error, with a
+    half-made folder)."""
+    if shutil.which("sbatch") is None:
+        pytest.skip("needs sbatch on PATH (Debian's slurm-client; scripts/slurm_local.sh installs it)")
+    env = {k: v for k, v in os.environ.items() if k != "SLURM_CONF"}
+    env["XDG_CACHE_HOME"] = str(tmp_path / "cache")
+    if Path("/etc/slurm/slurm.conf").exists():
+        pytest.skip("this machine has a SLURM configuration of its own")
+    r = _refused_sweep(tmp_path, env)
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert "no SLURM controller answers (SLURM_CONF is unset;" in lines[0] and "slurm_local.sh start" in lines[0]
+    assert not (tmp_path / "sw").exists()
+    r = _refused_sweep(tmp_path, {**env, "SLURM_CONF": str(tmp_path / "missing.conf")})
+    lines = r.stderr.strip().splitlines()
+    assert r.returncode == 2 and len(lines) == 1 and f"SLURM_CONF={tmp_path / 'missing.conf'}" in lines[0], r.stderr
+    assert not (tmp_path / "sw").exists()
+

@@ -11,11 +11,19 @@ from pathlib import Path
 
 from layerbvh_mitsuba import atomic
 from layerbvh_mitsuba.ab.render import UserError
+from layerbvh_mitsuba.runtime.cache import cache_dir
 
 JOB_SCRIPT = "slurm_job.sh"      # written next to the sweep's results: what was submitted
 LOG_DIR = "slurm_logs"           # the worker jobs' stdout/stderr, next to the results
 DEATH_TIMEOUT_S = 30             # a worker whose scheduler is gone (the sweep killed) exits after this
 WALLTIME_MARGIN_S = float(os.environ.get("LAYERBVH_SLURM_MARGIN_S", "10"))  # a point ends this long before its job
+PROBE_TIMEOUT_S = 20             # `sinfo` must answer within this (it retries an unreachable controller)
+
+
+def local_cluster_conf() -> Path:
+    """Where `scripts/slurm_local.sh start` links its cluster's slurm.conf (and `stop` removes the
+    link): what the sweep uses when SLURM_CONF is unset and no other controller answers."""
+    return cache_dir("slurm") / "slurm.conf"
 
 
 @dataclass(frozen=True)
@@ -60,7 +68,43 @@ def check(settings: SlurmSettings) -> SlurmSettings:
         raise UserError("--slurm-cores and --slurm-jobs must be >= 1 and --slurm-memory > 0")
     if settings.adapt_min is not None and not 0 <= settings.adapt_min <= settings.jobs:
         raise UserError(f"--slurm-adapt-min must be in [0, --slurm-jobs={settings.jobs}], got {settings.adapt_min}")
+    _find_controller()
     return settings
+
+
+def _controller_answer(env: dict) -> str | None:
+    """None when a SLURM controller answers `sinfo` under `env`, else why not (sinfo's last line)."""
+    try:
+        r = subprocess.run(["sinfo", "-h", "-o", "%T"], env=env, capture_output=True, text=True,
+                           timeout=PROBE_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        return f"sinfo did not answer within {PROBE_TIMEOUT_S} s"
+    except OSError as e:
+        return f"sinfo: {e.strerror}"
+    if r.returncode == 0:
+        return None
+    return (r.stderr.strip().splitlines() or [f"sinfo exited {r.returncode}"])[-1]
+
+
+def _find_controller() -> None:
+    """Make sure sbatch will reach a controller before any job script or folder is written: the
+    one SLURM_CONF (or SLURM's own default) names, else, with SLURM_CONF unset, the one-node
+    cluster scripts/slurm_local.sh started (its slurm.conf, linked where local_cluster_conf says;
+    SLURM_CONF is then set for this process, so sbatch, squeue and dask-jobqueue use it). A
+    UserError saying how to get one otherwise."""
+    why = _controller_answer(dict(os.environ))
+    if why is None:
+        return
+    local = local_cluster_conf()
+    if "SLURM_CONF" not in os.environ and local.exists() \
+            and _controller_answer({**os.environ, "SLURM_CONF": str(local.resolve())}) is None:
+        os.environ["SLURM_CONF"] = str(local.resolve())
+        print(f"layerbvh: --cluster slurm: using the one-node cluster of scripts/slurm_local.sh "
+              f"(SLURM_CONF={os.environ['SLURM_CONF']})", file=sys.stderr)
+        return
+    where = f"SLURM_CONF={os.environ['SLURM_CONF']}" if "SLURM_CONF" in os.environ else "SLURM_CONF is unset"
+    raise UserError(f"--cluster slurm: no SLURM controller answers ({where}; {why}): set SLURM_CONF to your "
+                    f"cluster's slurm.conf, or start a one-node cluster here with `bash scripts/slurm_local.sh start`")
 
 
 def make_cluster(settings: SlurmSettings, out: Path, exclusive_resource: str):
