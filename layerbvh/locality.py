@@ -13,13 +13,10 @@ from .bvh import build
 from .inputs import DEFAULT_TREELET_HEIGHT
 from .layout import LayerLayout
 from .memmodel import Caches, Preset, preset as named_preset, with_segment
-from .state import MISS
-from .wavefront import ENTRY_BYTES, MODES, TAIL_FRACTION, TAIL_RAYS, takes_tail
+from .state import LEAN_STATE, MISS
+from .steptraffic import limits, sort_traffic
+from .wavefront import MODES, TAIL_FRACTION, TAIL_RAYS, takes_tail
 
-# Fields a wavefront step carries per ray (state.RayState without the work counters, as timed
-# runs trace: t u v prim link sp slot treelet), 4 bytes each.
-STATE_FIELDS = 8
-STATE_BYTES = 4 * STATE_FIELDS
 RAY_RECORD_BYTES = 32       # state.RayRecords: one 32-byte record per ray (the layer modes)
 PER_RAY_LOADS = 7           # per_ray reads o, d (six arrays) and tmax by slot: 4 bytes each
 REGION_ALIGN = 4096
@@ -37,12 +34,15 @@ class ReplayResult:
     prim: np.ndarray                # per ray of the input (MISS: none / not occluded)
     t: np.ndarray                   # float32, inf on a miss
     work: dict                      # per ray: inner_nodes, leaves, triangles, iterations, steps
+    branching: int
     tally: np.ndarray               # [site, (transactions, lane requests)]
     levels_hit: np.ndarray          # [site, level]: transactions served by each level (last: DRAM)
     warp_iterations: int
     lane_iterations: int
     kernels: int                    # kernel launches (wavefront steps, the tail)
     sort_bytes: int                 # bytes moved between steps (see sort_traffic)
+    ray_steps: int                  # rays summed over the wavefront steps (not the tail): what sort_bytes is spread over
+    pushed: int                     # entries the rays that went on pushed in the steps (written back)
     seconds: float
 
 
@@ -60,24 +60,6 @@ def valid_rays(o: np.ndarray, d: np.ndarray, tmax: np.ndarray) -> np.ndarray:
     """inputs.ray_batch's validity: finite origin and direction, nonzero direction, tmax > 0."""
     ok = np.isfinite(o).all(1) & np.isfinite(d).all(1) & (d != 0).any(1)
     return ok & ~np.isnan(tmax) & (tmax > 0)
-
-
-def sort_traffic(n: int, pushed: int, done: int, cap_local: int, sort: bool, last: bool) -> int:
-    """Bytes a wavefront step moves outside its traversal kernel, each array element read or
-    written once (these are streams far larger than any cache, so all of it counts as DRAM traffic):
-    the kernel's outputs (state, done flag, entry count, its local entries), the write-back of the
-    entries it pushed to the global stacks, the sort keys, the sort or compaction, and the
-    permutation of the state of the rays still going. The results each ray writes when it finishes
-    are not counted: per_ray writes the same."""
-    out = n * (STATE_BYTES + 1 + 4 + cap_local * ENTRY_BYTES)
-    back = n * (cap_local * ENTRY_BYTES + 4 + 4 + 4) + pushed * ENTRY_BYTES + n * 4
-    if last:
-        return out + back
-    keys = n * (1 + 4 + 4) + n  # done + next treelet -> key; counting the finished rays
-    left = n - done
-    order = n * 4 + n * 4 + left * 8 if sort else n + left * 4  # block_mkperm + its first `left`; compress
-    take = left * 2 * STATE_BYTES
-    return out + back + keys + order + take
 
 
 def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, preset: Preset,
@@ -118,8 +100,8 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
              "local_link": local_words * 4, "local_t": local_words * 4}
     if layer:
         sizes["ray_records"] = n_all * RAY_RECORD_BYTES
-        sizes.update({f"state_{k}": n_all * 4 for k in range(STATE_FIELDS)})
-        start = [("ray_records", RAY_RECORD_BYTES, False)] + [(f"state_{k}", 4, True) for k in range(STATE_FIELDS)]
+        sizes.update({f"state_{f}": n_all * 4 for f in LEAN_STATE})  # (a step reads the lean state, 4 bytes a field)
+        start = [("ray_records", RAY_RECORD_BYTES, False)] + [(f"state_{f}", 4, True) for f in LEAN_STATE]
     else:
         sizes.update({f"ray_{k}": n_all * 4 for k in range(PER_RAY_LOADS)})
         start = [(f"ray_{k}", 4, False) for k in range(PER_RAY_LOADS)]
@@ -144,7 +126,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     n_levels = len(preset.levels)
     tally = np.zeros((mt.SITES, 2), np.int64)
     levels_hit = np.zeros((mt.SITES, n_levels + 1), np.int64)
-    lanes = np.zeros(3, np.int64)
+    lanes = np.zeros(5, np.int64)
     views = (nodes_f, nodes_u, tris_f, tris_u, tris_d, tf, nt)
     state = (fst, ist, loc_link, loc_t, g_link, g_t)
     sites = (site_base, site_bytes, site_local, start_sites, start_by_pos, preset.segment_bytes)
@@ -156,7 +138,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
         mt.run_kernel(rays, warp, preset.units, preset.resident_warps, preset.block_warps, bounded, use_global, cap,
                       any_hit, cap_g, *views, *state, *sites, *model)
 
-    kernels, sort_bytes = 0, 0
+    kernels, sort_bytes, ray_steps = 0, 0, 0
     if n and not layer:
         launch(order, False, False, cap_g)
         kernels = 1
@@ -169,14 +151,15 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
                 launch(order, False, True, cap_g)
                 kernels += 1
                 break
-            pushed_before = int(lanes[2])
+            before = lanes.copy()
             launch(order, True, True, cap_local)
             kernels += 1
-            pushed = int(lanes[2]) - pushed_before
+            ray_steps += n_active
+            pushed, improved, pushes = (int(x) for x in lanes[2:5] - before[2:5])
             keys = mt.next_treelets(order, ist, finished)
             done = int(np.count_nonzero(keys == finished))
             last = done == n_active
-            sort_bytes += sort_traffic(n_active, pushed, done, cap_local, sort, last)
+            sort_bytes += sort_traffic(n_active, pushes, pushed, improved, done, sort, last)
             if last:
                 break
             # block_mkperm is a stable counting sort; finished rays go last and are dropped.
@@ -194,9 +177,11 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     work = {name: np.where(valid, ist[:, col], 0) for name, col in (
         ("inner_nodes", mt.I_INNER), ("leaves", mt.I_LEAF), ("triangles", mt.I_TRI), ("iterations", mt.I_ITER),
         ("steps", mt.I_STEPS))}
-    return ReplayResult(mode=mode, warp=warp, preset=preset, rays=n, prim=prim, t=t, work=work, tally=tally,
+    return ReplayResult(mode=mode, warp=warp, preset=preset, rays=n, prim=prim, t=t, work=work,
+                        branching=lay.branching, tally=tally,
                         levels_hit=levels_hit, warp_iterations=int(lanes[0]), lane_iterations=int(lanes[1]),
-                        kernels=kernels, sort_bytes=sort_bytes, seconds=time.perf_counter() - t0)
+                        kernels=kernels, sort_bytes=sort_bytes, ray_steps=ray_steps,
+                        pushed=int(lanes[2]), seconds=time.perf_counter() - t0)
 
 
 # -- the check: the trace follows the kernel ---------------------------------------------------------
@@ -276,6 +261,13 @@ class LocalityRow:
     triangle_dram_bytes_per_ray: float
     sort_bytes_per_ray: float
     total_dram_bytes_per_ray: float     # dram + sort: what the mode costs the memory bus
+    branching: int = 2                  # children per node of the replayed tree
+    steps_per_ray: float = 0.0          # kernel calls a ray took part in (wavefront steps and the tail)
+    sort_bytes_per_ray_step: float = 0.0  # sort_bytes over the rays of every wavefront step
+    pushed_per_ray_step: float = 0.0    # entries pushed and written back, per ray and wavefront step
+    # The limits of a step design on layer rows (steptraffic.limits; None on per_ray rows).
+    break_even_bytes_per_ray_step: float | None = None
+    lower_bound_bytes_per_ray_step: float | None = None
     sampled_from: int | None = None     # rays the kind had before sampling (None: not sampled)
     seconds: float = 0.0
     trace_exact: bool | None = None     # the trace matched the kernel on every ray (None: not checked)
@@ -323,6 +315,9 @@ def row(kind: str, rep: ReplayResult, treelet_height: int, sampled_from: int | N
         node_dram_bytes_per_ray=dram(mt.CATEGORY["node"]), triangle_dram_bytes_per_ray=dram(mt.CATEGORY["triangle"]),
         sort_bytes_per_ray=rep.sort_bytes / n,
         total_dram_bytes_per_ray=dram(range(mt.SITES)) + rep.sort_bytes / n,
+        branching=rep.branching, steps_per_ray=float(rep.work["steps"].sum()) / n,
+        sort_bytes_per_ray_step=rep.sort_bytes / rep.ray_steps if rep.ray_steps else 0.0,
+        pushed_per_ray_step=rep.pushed / rep.ray_steps if rep.ray_steps else 0.0,
         sampled_from=sampled_from, seconds=rep.seconds, trace_exact=None if check is None else check.exact,
         preset_params=rep.preset.as_dict())
 
@@ -373,8 +368,11 @@ def verdict(rows: list[LocalityRow]) -> list[str]:
             f"{nt:.2f}x its node and triangle bytes from DRAM; all kernel reads {_ratio(s.dram_bytes_per_ray, p.dram_bytes_per_ray):.2f}x, "
             f"with the {s.sort_bytes_per_ray:.0f} B/ray moved between steps "
             f"{_ratio(s.total_dram_bytes_per_ray, p.dram_bytes_per_ray):.2f}x: sorting "
-            + ("wins on memory traffic." if s.total_dram_bytes_per_ray < p.dram_bytes_per_ray
-               else "does not pay for itself in memory traffic."))
+            + ("wins on memory traffic" if s.total_dram_bytes_per_ray < p.dram_bytes_per_ray
+               else "does not pay for itself in memory traffic")
+            + (f" (per ray and step it moves {s.sort_bytes_per_ray_step:.0f} B; break-even "
+               f"{s.break_even_bytes_per_ray_step:.0f} B, lower bound {s.lower_bound_bytes_per_ray_step:.0f} B)."
+               if s.break_even_bytes_per_ray_step is not None else "."))
     return out
 
 
@@ -497,4 +495,5 @@ def measure(vertices, faces, ray_sets: list[RaySet], settings: LocalitySettings,
                         checks.append({"kind": rs.kind, "treelet_height": h, **asdict(check), "exact": False,
                                        "schedule": f"W={rep.warp} {rep.preset.name}"})
                 rows.append(row(rs.kind, rep, h, before, check if settings.check else None))
+    limits(rows)
     return LocalityRun(rows=rows, checks=checks, bvh=bvh_stats, seconds=time.perf_counter() - t0)

@@ -44,8 +44,8 @@ _NRM = TRI_NORMAL // 2                  # first float64 slot of the stored norma
 F_O, F_D, F_INV, F_SX, F_SY, F_SZ, F_T, F_U, F_V = 0, 3, 6, 9, 10, 11, 12, 13, 14
 F_COLS = 16
 (I_KX, I_KY, I_KZ, I_PRIM, I_LINK, I_SP, I_TRELET, I_DONE, I_INNER, I_LEAF, I_TRI, I_ITER, I_STEPS,
- I_TRI_CUR, I_TRI_END, I_NL, I_ACTIVE, I_NEXT) = range(18)
-I_COLS = 18
+ I_TRI_CUR, I_TRI_END, I_NL, I_ACTIVE, I_NEXT, I_HITS, I_PUSHES) = range(20)
+I_COLS = 20
 
 # -- load sites (one load instruction each) ----------------------------------------------------------
 S_TRI, S_LOC_R_LINK, S_LOC_R_T, S_STACK_LINK, S_STACK_T, S_NODE_TRELET, S_TF, S_NODE, S_LOC_W_LINK, S_LOC_W_T = range(10)
@@ -198,6 +198,7 @@ def iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, t
         if closer:
             fst[s, F_T], fst[s, F_U], fst[s, F_V] = t, u, v
             ist[s, I_PRIM] = prim
+            ist[s, I_HITS] += 1  # (a layer step writes each closer hit to the results at once)
         ist[s, I_TRI_CUR] = tri + 1
         ist[s, I_TRI] += 1
         if any_hit and closer:
@@ -272,6 +273,7 @@ def iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, t
     loc_t[ls, slot] = far_t
     if push:
         nl += 1
+        ist[s, I_PUSHES] += 1  # (a layer step writes each push to its push buffer at once)
     # -- a leaf: its triangles from the next iteration on --
     if active and link != _POP and (link & _LEAF) != 0:
         ist[s, I_TRI_CUR] = link & _FIRST
@@ -294,13 +296,16 @@ def _start_lane(s, ist):
     ist[s, I_ACTIVE] = 1
     ist[s, I_NEXT] = ist[s, I_TRELET]
     ist[s, I_STEPS] += 1
+    ist[s, I_HITS] = 0
+    ist[s, I_PUSHES] = 0
 
 
 @numba.njit(cache=True, inline="always")
 def _write_back(s, ls, ist, loc_link, loc_t, g_link, g_t):
-    """wavefront.trace's write-back for one ray whose step ended: the entries it pushed in the step
-    go above its global stack (done as the lane ends, not after the kernel: nothing else reads that
-    ray's stack in between, and so the local stacks are per lane, not per ray). Returns how many."""
+    """wavefront.trace's write-back for one ray whose step ended and that goes on: the entries it
+    pushed in the step go above its global stack (done as the lane ends, not after the kernel:
+    nothing else reads that ray's stack in between, and so the local stacks are per lane, not per
+    ray). Returns how many."""
     nl = ist[s, I_NL]
     sp = ist[s, I_SP]
     for k in range(nl):
@@ -329,8 +334,9 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
     per site into segments (transactions), and each transaction is one access to the cache model.
     tally[site] += (transactions, lane requests); levels_hit[site, level] += transactions served by
     that level (last column: DRAM); lanes_out += (warp-iterations, active lane-iterations, entries
-    written back). In a bounded step (a wavefront step) each ray's pushed entries are written back
-    to its global stack when its lane ends."""
+    written back, closer hits found,
+    entries pushed). In a bounded step (a wavefront step) the
+    entries each ray that goes on pushed are written back to its global stack when its lane ends."""
     n = len(order)
     n_warps = (n + W - 1) // W
     # Each unit's warps, in launch order.
@@ -390,8 +396,11 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
                                     tris_d, treelet_first, node_treelet, fst, ist, loc_link, loc_t, g_link, g_t, req[j])
                     if ist[s, I_ACTIVE] != 0:
                         going += 1
-                    elif bounded:
-                        lanes_out[2] += _write_back(s, ls, ist, loc_link, loc_t, g_link, g_t)
+                    else:
+                        lanes_out[3] += ist[s, I_HITS]
+                        lanes_out[4] += ist[s, I_PUSHES]
+                        if bounded and ist[s, I_DONE] == 0:
+                            lanes_out[2] += _write_back(s, ls, ist, loc_link, loc_t, g_link, g_t)
                 lanes_out[0] += 1
                 lanes_out[1] += live
                 for k in range(S_START + n_start):

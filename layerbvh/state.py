@@ -17,7 +17,36 @@ class EntryStack(NamedTuple):
     t: object     # Float (slots * rows)
     rows: int
 
+
+class PushBuffer(NamedTuple):
+    """Where a wavefront step's kernel writes the entries each ray pushed in the step, `rows`
+    per lane (entry k of the step's lane j at j * rows + k), and only those: a later kernel moves
+    them above the rays' global stacks (wavefront.trace). Not the global stack itself: a kernel
+    that pops from the stack and pushes into it would read and write one array, which Dr.Jit
+    copies whole first (copy-on-write), and through a zero-copy alias the hits went wrong
+    (measured: 42 of 40,000 bunny rays; the kernel's arrays are `noalias` to LLVM)."""
+
+    link: object  # UInt32 (lanes * rows)
+    t: object     # Float (lanes * rows)
+    rows: int
+
+
 MISS = 0xFFFFFFFF
+
+# What a ray carries between wavefront steps (the layer modes; timed traces, no work counters),
+# one array per field, 4 bytes each (issue 40: was 8 fields, 32 bytes, with u and v):
+#   t        float32  closest hit distance so far (culls entries; bounds the slab tests)
+#   prim     uint32   its primitive (of two hits at the same t the lower id wins)
+#   link     uint32   where the ray goes on: a node, leaf or exit link, or POP
+#   sp       uint32   the depth of its entry stack in global memory
+#   slot     uint32   its ray: which ray record, entry-stack rows and results are its own
+#   treelet  uint32   the treelet of its next step: its sort key
+# total: 24 bytes. u and v are not carried: a step that improves a ray's hit writes t, u, v and
+# prim to the results by slot. A step writes back all but slot (20 bytes). Instanced layouts add
+# inst and hit_inst (8 bytes); statistics runs add the work counters.
+LEAN_STATE = ("t", "prim", "link", "sp", "slot", "treelet")
+LEAN_STATE_BYTES = 4 * len(LEAN_STATE)
+LEAN_STATE_WRITTEN_BYTES = LEAN_STATE_BYTES - 4  # (slot is passed through, never rewritten)
 # Work counted per ray when statistics are asked for: RayState field -> Results/Hits name.
 WORK = {"n_inner": "inner_nodes", "n_leaf": "leaves", "n_tri": "triangles", "n_iter": "iterations",
         "n_steps": "steps"}
@@ -83,7 +112,9 @@ class RayState:
     """What a ray carries from one wavefront step to the next (one array per field; origins and
     directions stay in the batch's ray records, read by slot).
 
-    `t, u, v, prim` are the closest hit so far (prim = MISS: none), `link` where the ray goes on
+    `t, u, v, prim` are the closest hit so far (prim = MISS: none; between wavefront steps u and
+    v are None: a step writes an improved hit to the results by slot, and t, prim are all the next
+    step reads of it: LEAN_STATE), `link` where the ray goes on
     (a node, leaf or exit link, or layout.POP), `sp` the depth of its entry stack in global
     memory, `slot` its index in the caller's ray batch (and so which entry stack and ray record
     it owns), `treelet` the treelet it traverses in the coming step. The work counters are None
@@ -92,13 +123,13 @@ class RayState:
     `hit_inst` the instance of the closest hit so far; both None otherwise."""
 
     t: object
-    u: object
-    v: object
     prim: object
     link: object
     sp: object
     slot: object
     treelet: object
+    u: object = None
+    v: object = None
     n_inner: object = None
     n_leaf: object = None
     n_tri: object = None
@@ -114,8 +145,8 @@ class RayState:
         """Every ray at the root, no hit yet, slot = its index."""
         n = dr.width(tmax)
         zero = dr.zeros(m.UInt32, n)
-        s = cls(t=m.Float(tmax), u=dr.zeros(m.Float, n), v=dr.zeros(m.Float, n), prim=dr.full(m.UInt32, MISS, n),
-                link=zero, sp=zero, slot=dr.arange(m.UInt32, n), treelet=zero)
+        s = cls(t=m.Float(tmax), prim=dr.full(m.UInt32, MISS, n), link=zero, sp=zero, slot=dr.arange(m.UInt32, n),
+                treelet=zero)
         if count_work:
             for field in work_fields(instanced):
                 setattr(s, field, zero)
@@ -147,15 +178,22 @@ class Results:
     def arrays(self) -> tuple:
         return (self.t, self.u, self.v, self.prim, *self.work.values()) + ((self.inst,) if self.inst is not None else ())
 
+    def write_hits(self, s: RayState, u, v, mask) -> None:
+        """The closest hits of the rays `mask` (hit t, prim and instance from `s`), by slot."""
+        for dst, src in ((self.t, s.t), (self.u, u), (self.v, v), (self.prim, s.prim), (self.inst, s.hit_inst)):
+            if dst is not None:
+                dr.scatter(dst, src, s.slot, mask)
+
     def place(self, other: "Results", idx) -> None:
         """Copy the results of a sub-batch to the rays `idx`."""
         for dst, src in zip(self.arrays(), other.arrays()):
             dr.scatter(dst, src, idx)
 
     def write(self, s: RayState, mask) -> None:
-        for dst, src in ((self.t, s.t), (self.u, s.u), (self.v, s.v), (self.prim, s.prim), (self.inst, s.hit_inst)):
-            if dst is not None:
-                dr.scatter(dst, src, s.slot, mask)
+        """The hits (when `s` carries u and v: a per_ray walk's) and work counters of the rays
+        `mask`, by slot."""
+        if s.u is not None:
+            self.write_hits(s, s.u, s.v, mask)
         if s.n_iter is not None:
             for field, name in work_fields(self.inst is not None).items():
                 dr.scatter(self.work[name], getattr(s, field), s.slot, mask)

@@ -7,7 +7,7 @@ import drjit as dr
 
 from .inputs import RayBatch
 from .layout import DeviceLayout, treelet_levels
-from .state import DirectRays, EntryStack, RayRecords, RayState, Results, SlotRays
+from .state import DirectRays, EntryStack, PushBuffer, RayRecords, RayState, Results, SlotRays
 from .stats import TraceStats
 from .walk import walk
 
@@ -75,6 +75,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
     st_link = dr.empty(m.UInt32, n * cap_global)
     st_t = dr.empty(m.Float, n * cap_global)
     stack = EntryStack(st_link, st_t, cap_global)
+    push = PushBuffer(dr.empty(m.UInt32, n * cap_local), dr.empty(m.Float, n * cap_local), cap_local)
     finished = lay.treelet_count  # bucket after every treelet: finished rays sort last
     buckets = 1 << max(1, (finished).bit_length())
     state_bytes = len(s.fields()) * 4
@@ -86,50 +87,60 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         if takes_tail(n_active, n0, stats.steps, tail_rays, tail_fraction):
             # Same nearest-first order as the steps, so the same hits and work counts.
             out, done, _, _ = walk(m, lay, rays, s, stack=stack, cap=cap_global, bounded=False, any_hit=any_hit,
-                                  count_work=count_work)
-            res.write(out, done)
+                                  count_work=count_work, results=res)
+            res.write(out, done)  # (the work counters: the kernel wrote the hits)
             dr.eval(*res.arrays())
             stats.time_traverse_s += _sync() - ta
             stats.tail_rays = n_active
             stats.steps += 1
             break
-        out, done, nl, local = walk(m, lay, rays, s, stack=stack, cap=cap_local, bounded=True, any_hit=any_hit,
-                                   count_work=count_work)
-        dr.eval(out, done, nl, local)
+        # The step's kernel: the walk, the hits it improved (written by slot), the entries each
+        # ray pushed (into the push buffer, by lane) and each ray's sort key.
+        out, done, nl, _ = walk(m, lay, rays, s, stack=stack, cap=cap_local, bounded=True, any_hit=any_hit,
+                                count_work=count_work, results=res, push=push)
+        keys = out.treelet = dr.select(done, m.UInt32(finished), out.treelet)
+        if count_work:
+            res.write(out, done)
+        dr.eval(out, keys, nl, *res.arrays())
+        del done  # (unevaluated, it would hold the step's graph, whose reads of the entry stacks
+        # make Dr.Jit copy them whole before the scatters below: copy-on-write)
         tb = _sync()
-        # Write back the entries pushed in this step above the ray's global stack.
-        for k, (lk, lt) in enumerate(local):
-            mask = m.UInt32(k) < nl
-            pos = out.slot * cap_global + out.sp + k
-            dr.scatter(st_link, lk, pos, mask)
-            dr.scatter(st_t, lt, pos, mask)
-        out.sp = out.sp + nl
-        res.write(out, done)
-        keys = dr.select(done, m.UInt32(finished), out.treelet)
-        dr.eval(st_link, st_t, out.sp, keys, *res.arrays())
-        tc = _sync()
-        n_active = n_active - int(dr.count(done)[0])
+        n_active = n_active - int(dr.count(keys == finished)[0])
         if n_active == 0:
             stats.steps += 1
             stats.time_traverse_s += tb - ta
-            stats.time_other_s += tc - tb
             break
         if sort:
             perm = dr.detail.block_mkperm(keys, dr.width(keys), buckets) if buckets <= (1 << 16) \
                 else dr.argsort(keys)
             perm = dr.gather(m.UInt32, perm, dr.arange(m.UInt32, n_active))
         else:
-            perm = dr.compress(~done)
+            perm = dr.compress(keys != finished)  # (not ~done: an unevaluated kernel output re-runs it)
         dr.eval(perm)
         td = _sync()
+        # The rays that go on, in their new order, each with the entries it pushed moved above
+        # its global stack (one kernel: the rays that finished move nothing).
         s = out.take(perm)
-        dr.eval(s)
+        pushed = dr.gather(m.UInt32, nl, perm)
+        dr.eval(s, pushed)
+        # (one gather and one scatter per array over every (ray, slot) pair, masked: a scatter per
+        # slot made Dr.Jit launch a kernel per scatter)
+        most = int(dr.max(pushed)[0]) if n_active else 0  # (pairs beyond the most any ray pushed are all masked)
+        pair = dr.arange(m.UInt32, n_active * max(most, 1))
+        ray, k = pair // max(most, 1), pair % max(most, 1)
+        mask = k < dr.gather(m.UInt32, pushed, ray)
+        src = dr.gather(m.UInt32, perm, ray, mask) * cap_local + k
+        pos = dr.gather(m.UInt32, s.slot, ray, mask) * cap_global + dr.gather(m.UInt32, s.sp, ray, mask) + k
+        dr.scatter(st_link, dr.gather(m.UInt32, push.link, src, mask), pos, mask)
+        dr.scatter(st_t, dr.gather(m.Float, push.t, src, mask), pos, mask)
+        s.sp = s.sp + pushed
+        dr.eval(s.sp, st_link, st_t)
         te = _sync()
-        peak = max(peak, dr.width(keys) * (2 * state_bytes + cap_local * ENTRY_BYTES + 8))
+        peak = max(peak, dr.width(keys) * (2 * state_bytes + 8))
         stats.steps += 1
         stats.time_traverse_s += tb - ta
-        stats.time_other_s += (tc - tb) + (te - td)
-        stats.time_sort_s += td - tc
+        stats.time_other_s += te - td
+        stats.time_sort_s += td - tb
     # entry stacks, ray records, ray in/out arrays
     stats.work_bytes = peak + n * cap_global * ENTRY_BYTES + n * 4 * RayRecords.STRIDE + n * 4 * 10
     return res, stats

@@ -13,8 +13,12 @@ git -C "$root" worktree add -q --detach "$work/before" "$rev"
 mkdir -p "$work/pp"
 ln -s "$work/before/layerbvh" "$work/pp/layerbvh"
 ln -s "$work/before/plugin" "$work/pp/layerbvh_mitsuba"
-cd "$root"
-PY=.venv/bin/python
+# Run from the scratch folder: `python -m` puts the current folder first on sys.path, so from the
+# repository root the "before" side would import the working tree's layerbvh (it did, until
+# issue 40: engine changes were compared with themselves).
+scenes=($(cd "$root" && for sc in ${scenes[@]}; do realpath "$sc"; done))
+cd "$work"
+PY="$root/.venv/bin/python"
 lscpu | grep -E "Model name|^CPU\(s\)"
 $PY -c "import layerbvh; print('Dr.Jit LLVM lanes', layerbvh.llvm_vector_width())"
 for scene in ${scenes[@]}; do

@@ -185,6 +185,18 @@ MUTATIONS = (
              "    _find_controller()\n    return settings\n",
              "    return settings\n",
              ("tests/tools/test_slurm.py::test_an_unreachable_controller_gets_one_line",)),
+    Mutation("held_entries_not_counted", "the entries a ray still holds at a step's end are moved above its global "
+             "stack, but its stack depth is not raised by them (issue 40's step design: they are lost)",
+             "layerbvh/wavefront.py",
+             "        s.sp = s.sp + pushed\n",
+             "        s.sp = s.sp + 0 * pushed\n",
+             ("tests/engine/test_engine_hits.py::test_modes_agree_exactly[camera-bunny]",)),
+    Mutation("closer_hit_not_written", "a wavefront step does not write a closer hit's u and v to the results "
+             "(they are no longer carried in the state: issue 40)",
+             "layerbvh/walk.py",
+             "for dst, src in ((results.t, t), (results.u, u), (results.v, v), (results.prim, prim)):",
+             "for dst, src in ((results.t, t), (results.prim, prim)):",
+             ("tests/engine/test_engine_hits.py::test_modes_agree_exactly[camera-bunny]",)),
 )
 
 

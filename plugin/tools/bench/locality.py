@@ -183,8 +183,12 @@ MEANING = (
     "order. A warp's load is one transaction per distinct segment its lanes touch (coalescing); each "
     "transaction goes through set-associative LRU caches (one L1 per SM or core, a shared L2, and the "
     "CPU's L3) with resident warps interleaved round-robin. DRAM bytes are what the last level misses; "
-    "'between steps' is what a wavefront step moves outside its kernel (state out, entry write-back, keys, "
-    "the sort, the permutation), counted as DRAM traffic. The model leaves out instruction costs, latency "
+    "'between steps' is what a wavefront step moves besides its kernel's loads (its lean state out, the "
+    "entries rays pushed and their move above each ray's stack, hits it improved, keys, the sort, the "
+    "permutation), counted as DRAM traffic; per ray and step, the break-even is what a step may move and "
+    "still cost the bus less than per_ray (the layer kernels' own excess subtracted; negative: the kernels "
+    "alone read more), and the lower bound what any exact multi-exit design must move (its next state and "
+    "the entries pushed). The model leaves out instruction costs, latency "
     "hiding, write traffic inside the kernels, prefetching and the real replacement policies; on CUDA, "
     "where rcp is approximate, a few rays may take another path than the LLVM kernel the trace is checked "
     "against.")
@@ -193,13 +197,19 @@ MEANING = (
 def table_compact(rows: list) -> str:
     """Per kind and mode: the figures BENCHMARKS.md shows."""
     cols = ("kind", "mode", "rays", "node tx/ray", "SIMD eff.", "L1 hit", "L2 hit", "node+tri DRAM B/ray",
-            "kernel DRAM B/ray", "between steps B/ray", "total B/ray")
+            "kernel DRAM B/ray", "between steps B/ray", "total B/ray", "steps/ray", "between steps B/ray/step",
+            "break-even B/ray/step", "lower bound B/ray/step")
     out = "| " + " | ".join(cols) + " |\n|" + "---|" * len(cols) + "\n"
+
+    def num(x):
+        return "–" if x is None else f"{x:.0f}"
     for r in rows:
         out += (f"| {r.kind} | {r.mode} | {r.rays:,} | {r.node_transactions_per_ray:.1f} | {r.simd_efficiency:.2f} | "
                 f"{r.l1_hit_rate:.2f} | {r.l2_hit_rate:.2f} | "
                 f"{r.node_dram_bytes_per_ray + r.triangle_dram_bytes_per_ray:.0f} | {r.dram_bytes_per_ray:.0f} | "
-                f"{r.sort_bytes_per_ray:.0f} | {r.total_dram_bytes_per_ray:.0f} |\n")
+                f"{r.sort_bytes_per_ray:.0f} | {r.total_dram_bytes_per_ray:.0f} | {r.steps_per_ray:.1f} | "
+                f"{num(r.sort_bytes_per_ray_step if r.mode != 'per_ray' else None)} | "
+                f"{num(r.break_even_bytes_per_ray_step)} | {num(r.lower_bound_bytes_per_ray_step)} |\n")
     return out
 
 
