@@ -44,9 +44,10 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, *, stack: EntryStack | None, c
 
     In a wavefront step (the layer modes, issue 40) the kernel keeps its own books, so that
     between steps a ray moves only its lean state (state.LEAN_STATE): with `results` given, a ray
-    whose closest hit improved in this call writes t, u, v and prim there by slot (so `s` need
-    not carry u and v); with `push` (state.PushBuffer), a ray that goes on writes the entries it
-    pushed there (only those: not all `cap` local slots), the count returned is 0 for a ray that
+    writes each closer hit's t, u, v and prim there by slot as it finds it (so `s` need not carry
+    u and v); with `push` (state.PushBuffer), each push is also written to the lane's rows of the
+    push buffer as it happens, so at the end its first `nl` rows hold the entries the ray still
+    holds (never all `cap` local slots read out); the count returned is 0 for a ray that
     finished, and the local entries returned are none.
 
     In a bounded step, an entry's treelet is known without a lookup where it matters: entries
