@@ -125,9 +125,9 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         dr.eval(s, pushed)
         # (one gather and one scatter per array over every (ray, slot) pair, masked: a scatter per
         # slot made Dr.Jit launch a kernel per scatter)
-        most = int(dr.max(pushed)[0]) if n_active else 0  # (pairs beyond the most any ray pushed are all masked)
-        pair = dr.arange(m.UInt32, n_active * max(most, 1))
-        ray, k = pair // max(most, 1), pair % max(most, 1)
+        most = max(int(dr.max(pushed)[0]), 1)  # (pairs beyond the most any ray holds are all masked)
+        pair = dr.arange(m.UInt32, n_active * most)
+        ray, k = pair // most, pair % most
         mask = k < dr.gather(m.UInt32, pushed, ray)
         src = dr.gather(m.UInt32, perm, ray, mask) * cap_local + k
         pos = dr.gather(m.UInt32, s.slot, ray, mask) * cap_global + dr.gather(m.UInt32, s.sp, ray, mask) + k
@@ -141,8 +141,9 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         stats.time_traverse_s += tb - ta
         stats.time_other_s += te - td
         stats.time_sort_s += td - tb
-    # entry stacks, ray records, ray in/out arrays
-    stats.work_bytes = peak + n * cap_global * ENTRY_BYTES + n * 4 * RayRecords.STRIDE + n * 4 * 10
+    # entry stacks, push buffer, ray records, ray in/out arrays
+    stats.work_bytes = (peak + n * (cap_global + cap_local) * ENTRY_BYTES + n * 4 * RayRecords.STRIDE
+                        + n * 4 * 10)
     return res, stats
 
 
