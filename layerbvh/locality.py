@@ -13,7 +13,7 @@ from .bvh import build
 from .inputs import DEFAULT_TREELET_HEIGHT
 from .layout import LayerLayout
 from .memmodel import Caches, Preset, preset as named_preset, with_segment
-from .state import LEAN_STATE, MISS
+from .state import MISS, STATE_RECORD_BYTES
 from .steptraffic import limits, sort_traffic
 from .wavefront import MODES, TAIL_FRACTION, TAIL_RAYS, takes_tail
 
@@ -100,11 +100,13 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
              "local_link": local_words * 4, "local_t": local_words * 4}
     if layer:
         sizes["ray_records"] = n_all * RAY_RECORD_BYTES
-        sizes.update({f"state_{f}": n_all * 4 for f in LEAN_STATE})  # (a step reads the lean state, 4 bytes a field)
-        start = [("ray_records", RAY_RECORD_BYTES, False)] + [(f"state_{f}", 4, True) for f in LEAN_STATE]
+        # A step reads its ray's record by slot and its state record where the step before wrote it
+        # (state.StateRecords: in that step's lane order), through the sort's permutation.
+        sizes["state_records"] = n_all * STATE_RECORD_BYTES
+        start = [("ray_records", RAY_RECORD_BYTES, mt.BY_SLOT), ("state_records", STATE_RECORD_BYTES, mt.BY_PREVIOUS_LANE)]
     else:
         sizes.update({f"ray_{k}": n_all * 4 for k in range(PER_RAY_LOADS)})
-        start = [(f"ray_{k}", 4, False) for k in range(PER_RAY_LOADS)]
+        start = [(f"ray_{k}", 4, mt.BY_SLOT) for k in range(PER_RAY_LOADS)]
     base = _regions(sizes)
     site_base = np.zeros(mt.SITES, np.int64)
     site_bytes = np.ones(mt.SITES, np.int64)
@@ -119,7 +121,9 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     for k, (region, nbytes, _) in enumerate(start):
         site_base[mt.S_START + k], site_bytes[mt.S_START + k] = base[region], nbytes
     start_sites = np.arange(len(start), dtype=np.int64)
-    start_by_pos = np.array([by_pos for _, _, by_pos in start], np.bool_)
+    start_by = np.array([by for _, _, by in start], np.int64)
+    prev_pos = np.zeros(n_all, np.int64)
+    prev_pos[order] = np.arange(n)  # (the first step reads the records in order)
 
     caches = Caches(preset)
     tags, stamps, params, counts, clock = caches.arrays
@@ -129,7 +133,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     lanes = np.zeros(5, np.int64)
     views = (nodes_f, nodes_u, tris_f, tris_u, tris_d, tf, nt)
     state = (fst, ist, loc_link, loc_t, g_link, g_t)
-    sites = (site_base, site_bytes, site_local, start_sites, start_by_pos, preset.segment_bytes)
+    sites = (site_base, site_bytes, site_local, start_sites, start_by, prev_pos, preset.segment_bytes)
     model = (tags, stamps, params, counts, clock, tally, levels_hit, lanes)
 
     def launch(rays, bounded, use_global, cap):
@@ -157,6 +161,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
             ray_steps += n_active
             pushed, improved, pushes = (int(x) for x in lanes[2:5] - before[2:5])
             keys = mt.next_treelets(order, ist, finished)
+            prev_pos[order] = np.arange(len(order))  # (each ray's record, where this step wrote it)
             done = int(np.count_nonzero(keys == finished))
             last = done == n_active
             sort_bytes += sort_traffic(n_active, pushes, pushed, improved, done, sort, last)

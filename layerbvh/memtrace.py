@@ -320,11 +320,21 @@ def local_stack_rows(units: int, resident: int, warp: int) -> int:
     return units * resident * warp
 
 
+# Where a start load reads (StartLoads' `by`): the ray's own slot, its lane in this launch, or its
+# lane in the launch before (a state record gathered through the sort's permutation).
+BY_SLOT, BY_LANE, BY_PREVIOUS_LANE = 0, 1, 2
+
+
+@numba.njit(cache=True, inline="always")
+def _start_index(by, s, lane, prev_pos):
+    return s if by == BY_SLOT else (lane if by == BY_LANE else prev_pos[s])
+
+
 @numba.njit(cache=True, nogil=True)
 def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap, any_hit, cap_g,
                nodes_f, nodes_u, tris_f, tris_u, tris_d, treelet_first, node_treelet,
                fst, ist, loc_link, loc_t, g_link, g_t,
-               site_base, site_bytes, site_local, start_sites, start_by_pos, seg_bytes,
+               site_base, site_bytes, site_local, start_sites, start_by_pos, prev_pos, seg_bytes,
                tags, stamps, params, counts, clock, tally, levels_hit, lanes_out):
     """One kernel launch over the rays `order` (slots, in the launch's order), lane j in warp j // W.
 
@@ -390,7 +400,7 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
                         req[j, k] = NO_READ
                     if fresh:
                         for k in range(n_start):  # the ray (and its state) at the kernel's start
-                            req[j, S_START + k] = (lo + j) if start_by_pos[k] else s
+                            req[j, S_START + k] = _start_index(start_by_pos[k], s, lo + j, prev_pos)
                             used |= 1 << (S_START + k)
                     used |= iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, tris_f, tris_u,
                                     tris_d, treelet_first, node_treelet, fst, ist, loc_link, loc_t, g_link, g_t, req[j])

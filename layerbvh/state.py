@@ -34,20 +34,25 @@ class PushBuffer(NamedTuple):
 
 MISS = 0xFFFFFFFF
 
-# What a ray carries between wavefront steps (the layer modes; timed traces, no work counters),
-# one array per field, 4 bytes each (issue 40: was 8 fields, 32 bytes, with u and v):
+# What a ray carries between wavefront steps (the layer modes): one 32-byte record per ray
+# (StateRecords), 4-byte words (issue 40: was 8 arrays, 32 bytes, with u and v, permuted every step):
 #   t        float32  closest hit distance so far (culls entries; bounds the slab tests)
 #   prim     uint32   its primitive (of two hits at the same t the lower id wins)
 #   link     uint32   where the ray goes on: a node, leaf or exit link, or POP
-#   sp       uint32   the depth of its entry stack in global memory
+#   sp       uint32   the depth of its entry stack in global memory, the entries it pushed in the
+#                     step that wrote the record included (they are moved there after the step)
 #   slot     uint32   its ray: which ray record, entry-stack rows and results are its own
 #   treelet  uint32   the treelet of its next step: its sort key
-# total: 24 bytes. u and v are not carried: a step that improves a ray's hit writes t, u, v and
-# prim to the results by slot. A step writes back all but slot (20 bytes). Instanced layouts add
-# inst and hit_inst (8 bytes); statistics runs add the work counters.
+#   inst     uint32   instanced layouts: the instance it is inside (else unused)
+#   hit_inst uint32   instanced layouts: the instance of its closest hit (else unused)
+# total: 32 bytes, one GPU sector and half a CPU cache line: the next step gathers a ray's record
+# by the sort's permutation with one aligned load (six 4-byte arrays gathered in permuted order
+# would cost a sector each). u and v are not carried: a step that improves a ray's hit writes t,
+# u, v and prim to the results by slot. Statistics runs carry the work counters beside it.
 LEAN_STATE = ("t", "prim", "link", "sp", "slot", "treelet")
-LEAN_STATE_BYTES = 4 * len(LEAN_STATE)
-LEAN_STATE_WRITTEN_BYTES = LEAN_STATE_BYTES - 4  # (slot is passed through, never rewritten)
+LEAN_STATE_BYTES = 4 * len(LEAN_STATE)   # what the next step needs: 24 bytes ...
+STATE_RECORD_WORDS = 8
+STATE_RECORD_BYTES = 4 * STATE_RECORD_WORDS  # ... stored in a 32-byte record (written whole)
 # Work counted per ray when statistics are asked for: RayState field -> Results/Hits name.
 WORK = {"n_inner": "inner_nodes", "n_leaf": "leaves", "n_tri": "triangles", "n_iter": "iterations",
         "n_steps": "steps"}
@@ -95,6 +100,37 @@ class RayRecords:
         """(origin, direction) of the rays in `slot`, as three Floats each (one packet load)."""
         x = dr.gather(self.m.ArrayXf, self.rec, slot, shape=(self.STRIDE, dr.width(slot)))
         return [x[c] for c in range(3)], [x[c] for c in range(3, 6)]
+
+
+class StateRecords:
+    """The rays' states between wavefront steps as one 32-byte record per lane of the step that
+    wrote them (the layout above LEAN_STATE): a step writes its lanes' records in lane order (one
+    packet store per lane, coalesced), and the next step reads each of its rays' with one gather by
+    the sort's permutation, so nothing permutes the states in between (issue 40)."""
+
+    FIELDS = LEAN_STATE + ("inst", "hit_inst")
+
+    @staticmethod
+    def write(m, s: "RayState"):
+        """The records of the lanes of `s`, in lane order (a flat UInt32 array, 8 words a lane)."""
+        n = dr.width(s.link)
+        spare = dr.full(m.UInt32, MISS, n)
+        words = [dr.reinterpret_array(m.UInt32, s.t)] + [getattr(s, f) for f in LEAN_STATE[1:]] \
+            + [s.inst if s.inst is not None else spare, s.hit_inst if s.hit_inst is not None else spare]
+        rec = dr.empty(m.UInt32, n * STATE_RECORD_WORDS)
+        dr.scatter(rec, m.ArrayXu(words),
+                   dr.arange(m.UInt32, n))
+        return rec
+
+    @staticmethod
+    def read(m, rec, idx, instanced: bool) -> "RayState":
+        """The states of the records `idx` (one gather of 8 words a lane; lazy: it runs inside the
+        kernel that uses it)."""
+        w = dr.gather(m.ArrayXu, rec, idx, shape=(STATE_RECORD_WORDS, dr.width(idx)))
+        s = RayState(t=dr.reinterpret_array(m.Float, w[0]), prim=w[1], link=w[2], sp=w[3], slot=w[4], treelet=w[5])
+        if instanced:
+            s.inst, s.hit_inst = w[6], w[7]
+        return s
 
 
 class DirectRays:

@@ -1,7 +1,7 @@
 """What a wavefront step moves besides its traversal kernel's loads (the layer modes' "between steps" bytes), and the limits a step design has to meet to save memory traffic."""
 from __future__ import annotations
 
-from .state import LEAN_STATE_BYTES, LEAN_STATE_WRITTEN_BYTES
+from .state import LEAN_STATE_BYTES, STATE_RECORD_BYTES
 from .wavefront import ENTRY_BYTES
 
 HIT_BYTES = 16              # t, u, v, prim: what a step writes by slot for each closer hit it finds
@@ -11,26 +11,25 @@ def sort_traffic(n: int, pushes: int, pushed: int, improved: int, done: int, sor
     """Bytes a wavefront step of `n` rays moves besides its traversal kernel's loads (issue 40's
     design, wavefront.trace): each array element read or written once, all of it counted as DRAM
     traffic (streams far larger than any cache). `pushes` (entries pushed in the step), `pushed`
-    (those the rays that go on still hold at its end),
-    `improved` (closer hits the step found: each is written at once) and `done` (rays that
-    finished) are traced by the replay as the kernel runs.
-    - the step kernel's writes: the lean state less slot (LEAN_STATE_WRITTEN_BYTES, the sort key
-      included), the entry count, every push into the push buffer as it happens, each closer hit
-      by slot;
-    - then, unless every ray finished: the count of finished rays (keys read), the sort
-      (block_mkperm reads keys, writes the permutation; its first `left` entries copied) or the
-      compaction, and one kernel that permutes the lean state of the rays still going (read +
-      write) and moves the entries each of them pushed above its global stack (entry count read,
-      entries read and written).
+    (those the rays that go on still hold at its end), `improved` (closer hits the step found: each
+    is written at once) and `done` (rays that finished) are traced by the replay as the kernel runs.
+    - the step kernel's writes, in lane order: each lane's state record (STATE_RECORD_BYTES, written
+      whole), sort key, held-entry count and stack top; every push into the push buffer as it
+      happens; each closer hit by slot (the finished-ray count and the most entries held are two
+      atomics on one pair of words: no bytes per ray);
+    - then, unless every ray finished: the kernel that moves each held entry above its ray's global
+      stack (counts and tops read, entries read and written), and the sort (block_mkperm reads the
+      keys, writes the permutation) or the compaction (keys read, the rays that go on written);
+    - the permutation, read by the next step as it gathers each ray's record through it. The
+      record gather itself is one of the next kernel's loads (cache-simulated with them).
     The results a ray writes when it finishes are not counted: per_ray writes the same."""
-    kernel = n * (LEAN_STATE_WRITTEN_BYTES + 4) + pushes * ENTRY_BYTES + improved * HIT_BYTES
+    kernel = n * (STATE_RECORD_BYTES + 12) + pushes * ENTRY_BYTES + improved * HIT_BYTES
     if last:
         return kernel
     left = n - done
-    count = n * 4
-    order = n * 4 + n * 4 + left * 8 if sort else n * 4 + left * 4  # block_mkperm + its first `left`; compress
-    take = left * (2 * LEAN_STATE_BYTES + 4) + pushed * 2 * ENTRY_BYTES
-    return kernel + count + order + take
+    move = n * 8 + pushed * 2 * ENTRY_BYTES
+    order = n * 4 + n * 4 if sort else n * 4 + left * 4  # block_mkperm; compress
+    return kernel + move + order + left * 4
 
 
 def limits(rows: list) -> None:
@@ -39,7 +38,7 @@ def limits(rows: list) -> None:
       steps: what the steps may move between them and still cost the bus less than per_ray;
     - lower bound, for any exact wavefront design that keeps every exit (state.LEAN_STATE): the
       next step's state must be written once per step (t, prim, link, sp and the sort key: 20 bytes,
-      LEAN_STATE_WRITTEN_BYTES) and every entry pushed once (ENTRY_BYTES, at the pushes this mode
+      LEAN_STATE_BYTES less slot, which a design could keep in place) and every entry pushed once (ENTRY_BYTES, at the pushes this mode
       made); the ray record and the state the step reads are already in the kernels' DRAM bytes.
       Sorting (at least a key read and a permutation written) comes on top for the sorted mode."""
     groups: dict = {}
@@ -53,4 +52,4 @@ def limits(rows: list) -> None:
             wave_steps = r.sort_bytes_per_ray / r.sort_bytes_per_ray_step if r.sort_bytes_per_ray_step else 0.0
             if wave_steps:
                 r.break_even_bytes_per_ray_step = (p.dram_bytes_per_ray - r.dram_bytes_per_ray) / wave_steps
-                r.lower_bound_bytes_per_ray_step = LEAN_STATE_WRITTEN_BYTES + ENTRY_BYTES * r.pushed_per_ray_step
+                r.lower_bound_bytes_per_ray_step = LEAN_STATE_BYTES - 4 + ENTRY_BYTES * r.pushed_per_ray_step

@@ -68,8 +68,9 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, *, stack: EntryStack | None, c
                                                  results, push)
     if results is None:
         out.u, out.v = u_best, v_best
-    if push is not None:
+    if push is not None:  # (sp then counts the entries the ray holds: they go above its global stack)
         nl, local = dr.select(done, 0, nl), []
+        out.sp = out.sp + nl
     return out, done, nl, local
 
 

@@ -7,7 +7,8 @@ import drjit as dr
 
 from .inputs import RayBatch
 from .layout import DeviceLayout, treelet_levels
-from .state import DirectRays, EntryStack, PushBuffer, RayRecords, RayState, Results, SlotRays
+from .state import (STATE_RECORD_BYTES, DirectRays, EntryStack, PushBuffer, RayRecords, RayState,
+                    Results, SlotRays, StateRecords)
 from .stats import TraceStats
 from .walk import walk
 
@@ -78,9 +79,15 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
     push = PushBuffer(dr.empty(m.UInt32, n * cap_local), dr.empty(m.Float, n * cap_local), cap_local)
     finished = lay.treelet_count  # bucket after every treelet: finished rays sort last
     buckets = 1 << max(1, (finished).bit_length())
-    state_bytes = len(s.fields()) * 4
+    work = tuple(f for f in s.fields() if f not in StateRecords.FIELDS)  # statistics: the work counters
+    # The states as records (state.StateRecords), read by the first step in order.
+    rec = StateRecords.write(m, s)
+    dr.eval(rec)
     peak = 0
     n_active = n0 = dr.width(s.t)
+    s = StateRecords.read(m, rec, dr.arange(m.UInt32, n_active), instanced)
+    for f in work:
+        setattr(s, f, dr.zeros(m.UInt32, n_active))
     while n_active > 0:
         stats.active_per_step.append(n_active)
         ta = _sync()
@@ -94,53 +101,65 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
             stats.tail_rays = n_active
             stats.steps += 1
             break
-        # The step's kernel: the walk, the hits it improved (written by slot), the entries each
-        # ray pushed (into the push buffer, by lane) and each ray's sort key.
+        # The step's kernel: it gathers each ray's state record by the last sort's permutation,
+        # walks, writes the hits it improved (by slot) and the entries each ray pushed (into the
+        # push buffer, by lane) as it goes, and at its end each lane's new record, entry count
+        # and sort key, in lane order.
         out, done, nl, _ = walk(m, lay, rays, s, stack=stack, cap=cap_local, bounded=True, any_hit=any_hit,
                                 count_work=count_work, results=res, push=push)
         keys = out.treelet = dr.select(done, m.UInt32(finished), out.treelet)
+        top = out.slot * cap_global + out.sp - nl  # (where its held entries go: the record's sp counts them)
+        rec = StateRecords.write(m, out)
+        counters = [getattr(out, f) for f in work]
+        # The rays that finished and the most entries a ray holds, counted by the kernel itself
+        # (two atomics on one word each, not two more passes over the keys and counts).
+        n_done_w, most_w = dr.zeros(m.UInt32, 1), dr.zeros(m.UInt32, 1)  # (one reduction kind per array)
+        dr.scatter_reduce(dr.ReduceOp.Add, n_done_w, m.UInt32(1), m.UInt32(0), done)
+        dr.scatter_reduce(dr.ReduceOp.Max, most_w, nl, m.UInt32(0))
         if count_work:
             res.write(out, done)
-        dr.eval(out, keys, nl, *res.arrays())
-        del done  # (unevaluated, it would hold the step's graph, whose reads of the entry stacks
-        # make Dr.Jit copy them whole before the scatters below: copy-on-write)
+        dr.eval(rec, keys, nl, top, n_done_w, most_w, *counters, *res.arrays())
+        del done, out  # (unevaluated, `done` would hold the step's graph, whose reads of the entry
+        # stacks make Dr.Jit copy them whole before the scatters below: copy-on-write)
+        n_done, most = int(n_done_w[0]), int(most_w[0])
         tb = _sync()
-        n_active = n_active - int(dr.count(keys == finished)[0])
+        n_step = dr.width(keys)
+        n_active -= n_done
         if n_active == 0:
             stats.steps += 1
             stats.time_traverse_s += tb - ta
             break
+        # The entries each lane's ray still holds go above its global stack (one kernel, over the
+        # step's lanes in their order; one gather and one scatter per array over every (lane, k)
+        # pair, masked: a scatter per k made Dr.Jit launch a kernel per scatter).
+        # (pairs beyond the most any ray holds are all masked; rounded up to a power of two and
+        # passed opaque, one kernel serves every step: a literal `most` compiled one per value)
+        shift = max(most - 1, 0).bit_length()
+        pair = dr.arange(m.UInt32, n_step << shift)
+        lane, k = pair >> dr.opaque(m.UInt32, shift), pair & dr.opaque(m.UInt32, (1 << shift) - 1)
+        mask = k < dr.gather(m.UInt32, nl, lane)
+        pos = dr.gather(m.UInt32, top, lane, mask) + k
+        dr.scatter(st_link, dr.gather(m.UInt32, push.link, lane * cap_local + k, mask), pos, mask)
+        dr.scatter(st_t, dr.gather(m.Float, push.t, lane * cap_local + k, mask), pos, mask)
+        dr.eval(st_link, st_t)
+        td = _sync()
+        # The order of the next step: by treelet (a stable counting sort; finished rays last, left
+        # out), or the rays that go on in their order. Only this permutation is written: the next
+        # step gathers each ray's record through it.
         if sort:
-            perm = dr.detail.block_mkperm(keys, dr.width(keys), buckets) if buckets <= (1 << 16) \
-                else dr.argsort(keys)
-            perm = dr.gather(m.UInt32, perm, dr.arange(m.UInt32, n_active))
+            perm = dr.detail.block_mkperm(keys, n_step, buckets) if buckets <= (1 << 16) else dr.argsort(keys)
+            perm = dr.gather(m.UInt32, perm, dr.arange(m.UInt32, n_active))  # (lazy: read by the next step)
         else:
             perm = dr.compress(keys != finished)  # (not ~done: an unevaluated kernel output re-runs it)
-        dr.eval(perm)
-        td = _sync()
-        # The rays that go on, in their new order, each with the entries it pushed moved above
-        # its global stack (one kernel: the rays that finished move nothing).
-        s = out.take(perm)
-        pushed = dr.gather(m.UInt32, nl, perm)
-        dr.eval(s, pushed)
-        # (one gather and one scatter per array over every (ray, slot) pair, masked: a scatter per
-        # slot made Dr.Jit launch a kernel per scatter)
-        most = max(int(dr.max(pushed)[0]), 1)  # (pairs beyond the most any ray holds are all masked)
-        pair = dr.arange(m.UInt32, n_active * most)
-        ray, k = pair // most, pair % most
-        mask = k < dr.gather(m.UInt32, pushed, ray)
-        src = dr.gather(m.UInt32, perm, ray, mask) * cap_local + k
-        pos = dr.gather(m.UInt32, s.slot, ray, mask) * cap_global + dr.gather(m.UInt32, s.sp, ray, mask) + k
-        dr.scatter(st_link, dr.gather(m.UInt32, push.link, src, mask), pos, mask)
-        dr.scatter(st_t, dr.gather(m.Float, push.t, src, mask), pos, mask)
-        s.sp = s.sp + pushed
-        dr.eval(s.sp, st_link, st_t)
+        s = StateRecords.read(m, rec, perm, instanced)
+        for f, c in zip(work, counters):
+            setattr(s, f, dr.gather(m.UInt32, c, perm))
         te = _sync()
-        peak = max(peak, dr.width(keys) * (2 * state_bytes + 8))
+        peak = max(peak, n_step * (STATE_RECORD_BYTES + 16 + 4 * len(work)))  # records, keys, nl, top, perm
         stats.steps += 1
         stats.time_traverse_s += tb - ta
-        stats.time_other_s += te - td
-        stats.time_sort_s += td - tb
+        stats.time_other_s += td - tb
+        stats.time_sort_s += te - td
     # entry stacks, push buffer, ray records, ray in/out arrays
     stats.work_bytes = (peak + n * (cap_global + cap_local) * ENTRY_BYTES + n * 4 * RayRecords.STRIDE
                         + n * 4 * 10)

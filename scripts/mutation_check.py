@@ -53,8 +53,10 @@ MUTATIONS = (
     Mutation("first_exit_only", "exits beyond the first are ignored (the paper's bug): a step's other pushed exits "
              "are not written back",
              "layerbvh/wavefront.py",
-             "mask = m.UInt32(k) < nl\n",
-             "mask = (m.UInt32(k) < nl) & ((lk & 0x40000000) == 0)  # EXIT_BIT\n",
+             "dr.scatter(st_link, dr.gather(m.UInt32, push.link, lane * cap_local + k, mask), pos, mask)\n",
+             "held = dr.gather(m.UInt32, push.link, lane * cap_local + k, mask)\n"
+             "        dr.scatter(st_link, dr.select((held & 0x40000000) != 0, 0xFFFFFFFF, held), pos, mask)"
+             "  # EXIT_BIT -> POP\n",
              SAME_SEED_LAYER + ("tests/engine/test_engine_exact.py::"
                                 "test_one_exit_rule_is_wrong_often_on_a_real_mesh",)),
     Mutation("tie_rule_flipped", "ties in t go to the larger primitive id",
@@ -88,8 +90,8 @@ MUTATIONS = (
     Mutation("finished_rays_not_sorted_last", "the sort key of a finished ray is its last treelet, not 'after every "
              "treelet' (the next step keeps finished rays and loses active ones)",
              "layerbvh/wavefront.py",
-             "keys = dr.select(done, m.UInt32(finished), out.treelet)",
-             "keys = m.UInt32(out.treelet)",
+             "keys = out.treelet = dr.select(done, m.UInt32(finished), out.treelet)",
+             "keys = out.treelet = m.UInt32(out.treelet)",
              (MB + "test_same_seed_matches_stock[cbox-layer_sorted]",
               "tests/engine/test_engine_hits.py::test_modes_agree_exactly[incoherent-bunny]")),
     Mutation("tail_step_not_counted", "the per-ray tail is not counted as a step in the statistics",
@@ -186,11 +188,17 @@ MUTATIONS = (
              "    return settings\n",
              ("tests/tools/test_slurm.py::test_an_unreachable_controller_gets_one_line",)),
     Mutation("held_entries_not_counted", "the entries a ray still holds at a step's end are moved above its global "
-             "stack, but its stack depth is not raised by them (issue 40's step design: they are lost)",
-             "layerbvh/wavefront.py",
-             "        s.sp = s.sp + pushed\n",
-             "        s.sp = s.sp + 0 * pushed\n",
+             "stack, but the depth in its state record is not raised by them (issue 40's step design: they are lost)",
+             "layerbvh/walk.py",
+             "        out.sp = out.sp + nl\n",
+             "        out.sp = out.sp + 0 * nl\n",
              ("tests/engine/test_engine_hits.py::test_modes_agree_exactly[camera-bunny]",)),
+    Mutation("state_records_read_in_lane_order", "the next step reads the state records in the order the step "
+             "before wrote them, not through the sort's permutation (issue 40: nothing else permutes the states)",
+             "layerbvh/wavefront.py",
+             "        s = StateRecords.read(m, rec, perm, instanced)\n",
+             "        s = StateRecords.read(m, rec, dr.arange(m.UInt32, dr.width(perm)), instanced)\n",
+             ("tests/engine/test_engine_hits.py::test_modes_agree_exactly[incoherent-bunny]",)),
     Mutation("closer_hit_not_written", "a wavefront step does not write a closer hit's u and v to the results "
              "(they are no longer carried in the state: issue 40)",
              "layerbvh/walk.py",

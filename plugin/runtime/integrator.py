@@ -40,6 +40,10 @@ def loop(state: tuple, cond, body, symbolic: bool, label: str) -> tuple:
     the traversal's compacted rays, cannot take.)"""
     if symbolic:
         return dr.while_loop(state, cond, body, label=label, mode="symbolic")
+    # The first iteration's state too: a literal in it (dr.zeros, a constant) would be compiled
+    # into that iteration's kernels, which the second iteration (evaluated arrays) then compiles
+    # again (measured: a volpath case of the stability suite compiled 149 kernels, 3 of most).
+    dr.make_opaque(*(x for x in state if not isinstance(x, mi.Sampler)))
     while bool(dr.any(cond(*state), axis=None)):
         state = body(*state)
         for x in state:
