@@ -15,6 +15,7 @@ from .layout import LayerLayout
 from .memmodel import Caches, Preset, preset as named_preset, with_segment
 from .state import MISS, STATE_RECORD_BYTES
 from .steptraffic import limits, sort_traffic
+from .tracecheck import TraceCheck, check_trace, same_as
 from .wavefront import MODES, TAIL_FRACTION, TAIL_RAYS, takes_tail
 
 RAY_RECORD_BYTES = 32       # state.RayRecords: one 32-byte record per ray (the layer modes)
@@ -44,6 +45,7 @@ class ReplayResult:
     ray_steps: int                  # rays summed over the wavefront steps (not the tail): what sort_bytes is spread over
     pushed: int                     # entries the rays that went on pushed in the steps (written back)
     seconds: float
+    loads: dict = None              # per ray and load kind (memtrace.LOAD_KINDS): the loads fed to the cache model
 
 
 def _regions(sizes: dict) -> dict:
@@ -130,11 +132,12 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     n_levels = len(preset.levels)
     tally = np.zeros((mt.SITES, 2), np.int64)
     levels_hit = np.zeros((mt.SITES, n_levels + 1), np.int64)
-    lanes = np.zeros(5, np.int64)
+    lanes = np.zeros(6, np.int64)
+    loads = np.zeros((n_all, mt.SITES), np.int32)
     views = (nodes_f, nodes_u, tris_f, tris_u, tris_d, tf, nt)
     state = (fst, ist, loc_link, loc_t, g_link, g_t)
     sites = (site_base, site_bytes, site_local, start_sites, start_by, prev_pos, preset.segment_bytes)
-    model = (tags, stamps, params, counts, clock, tally, levels_hit, lanes)
+    model = (tags, stamps, params, counts, clock, tally, levels_hit, lanes, loads)
 
     def launch(rays, bounded, use_global, cap):
         if preset.flush_private_each_kernel:
@@ -159,12 +162,12 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
             launch(order, True, True, cap_local)
             kernels += 1
             ray_steps += n_active
-            pushed, improved, pushes = (int(x) for x in lanes[2:5] - before[2:5])
+            pushed, improved, pushes, holders = (int(x) for x in lanes[2:6] - before[2:6])
             keys = mt.next_treelets(order, ist, finished)
             prev_pos[order] = np.arange(len(order))  # (each ray's record, where this step wrote it)
             done = int(np.count_nonzero(keys == finished))
             last = done == n_active
-            sort_bytes += sort_traffic(n_active, pushes, pushed, improved, done, sort, last)
+            sort_bytes += sort_traffic(n_active, pushes, pushed, improved, done, holders, sort, last)
             if last:
                 break
             # block_mkperm is a stable counting sort; finished rays go last and are dropped.
@@ -182,53 +185,18 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     work = {name: np.where(valid, ist[:, col], 0) for name, col in (
         ("inner_nodes", mt.I_INNER), ("leaves", mt.I_LEAF), ("triangles", mt.I_TRI), ("iterations", mt.I_ITER),
         ("steps", mt.I_STEPS))}
+    kinds = {kind: sites for kind, (sites, _) in mt.LOAD_KINDS.items()}
+    kinds["ray"] = tuple(mt.S_START + k for k in ((0,) if layer else range(PER_RAY_LOADS)))
+    kinds["state"] = (mt.S_START + 1,) if layer else ()
+    per_kind = {kind: [loads[:, k] for k in sites] for kind, sites in kinds.items() if sites}
+    # (a kind's sites are loaded together, so each counts its loads once; replay() checks they agree)
+    assert all((c == cs[0]).all() for cs in per_kind.values() for c in cs), "a load kind's sites disagree"
     return ReplayResult(mode=mode, warp=warp, preset=preset, rays=n, prim=prim, t=t, work=work,
+                        loads={kind: np.where(valid, cs[0], 0) for kind, cs in per_kind.items()},
                         branching=lay.branching, tally=tally,
                         levels_hit=levels_hit, warp_iterations=int(lanes[0]), lane_iterations=int(lanes[1]),
                         kernels=kernels, sort_bytes=sort_bytes, ray_steps=ray_steps,
                         pushed=int(lanes[2]), seconds=time.perf_counter() - t0)
-
-
-# -- the check: the trace follows the kernel ---------------------------------------------------------
-@dataclass
-class TraceCheck:
-    """Where a replay and the kernel (LayerBVH.trace/occluded with stats) disagree, per ray."""
-
-    mode: str
-    rays: int
-    hit_mismatches: int             # prim differs, or t's bits differ on a hit
-    work_mismatches: dict           # per counter: rays whose count differs
-
-    @property
-    def exact(self) -> bool:
-        return self.hit_mismatches == 0 and not any(self.work_mismatches.values())
-
-
-def check_trace(bvh, o, d, tmax, any_hit: bool, rep: ReplayResult) -> TraceCheck:
-    """Trace the same rays with the kernel (bvh: a layerbvh.LayerBVH over the replayed layout,
-    batch_rays >= the ray count) in rep.mode and compare hits and per-ray work counts."""
-    if any_hit:
-        q = bvh.occluded(o, d, tmax, mode=rep.mode, stats=True)
-        kernel_hit = np.asarray(q.occluded, bool)
-        hits = int(np.count_nonzero(kernel_hit != (rep.prim != MISS)))
-        work = q.work
-    else:
-        h = bvh.trace(o, d, tmax, mode=rep.mode, stats=True)
-        kp, kt = np.asarray(h.prim).astype(np.int64), np.asarray(h.t, np.float32)
-        same_t = (kt.view(np.uint32) == rep.t.view(np.uint32)) | (kp == MISS)
-        hits = int(np.count_nonzero((kp != rep.prim) | ~same_t))
-        work = h.work
-    mism = {name: int(np.count_nonzero(np.asarray(work[name]).astype(np.int64) != rep.work[name]))
-            for name in rep.work}
-    return TraceCheck(mode=rep.mode, rays=len(rep.prim), hit_mismatches=hits, work_mismatches=mism)
-
-
-def _same_as(rep: ReplayResult, check: TraceCheck, ref: ReplayResult) -> TraceCheck:
-    """`check` (of `ref`, the same mode under another schedule) for `rep`: the kernel's mismatches
-    plus the rays where `rep` differs from `ref`."""
-    hits = int(np.count_nonzero((rep.prim != ref.prim) | (rep.t.view(np.uint32) != ref.t.view(np.uint32))))
-    work = {k: check.work_mismatches[k] + int(np.count_nonzero(rep.work[k] != ref.work[k])) for k in rep.work}
-    return TraceCheck(mode=rep.mode, rays=check.rays, hit_mismatches=check.hit_mismatches + hits, work_mismatches=work)
 
 
 # -- one row of numbers ------------------------------------------------------------------------------
@@ -495,7 +463,7 @@ def measure(vertices, faces, ray_sets: list[RaySet], settings: LocalitySettings,
                     check = checked[rep.mode][0]
                     checks.append({"kind": rs.kind, "treelet_height": h, **asdict(check), "exact": check.exact})
                 elif settings.check:
-                    check = _same_as(rep, *checked[rep.mode])
+                    check = same_as(rep, *checked[rep.mode])
                     if not check.exact:
                         checks.append({"kind": rs.kind, "treelet_height": h, **asdict(check), "exact": False,
                                        "schedule": f"W={rep.warp} {rep.preset.name}"})

@@ -57,6 +57,12 @@ SITE_NAMES = ("triangle", "local_read_link", "local_read_t", "stack_link", "stac
 CATEGORY = {"node": (S_NODE, S_NODE_TRELET, S_TF), "triangle": (S_TRI,), "stack": (S_STACK_LINK, S_STACK_T),
             "local": (S_LOC_R_LINK, S_LOC_R_T, S_LOC_W_LINK, S_LOC_W_T)}
 # ... and the start sites are "ray".
+# The kernel's loads by kind: the replay's load sites of each, and the work counter the kernel
+# keeps of it (state.WORK); besides these, each kernel a ray takes part in ("steps") loads its ray
+# (and in a wavefront step its state record) once.
+LOAD_KINDS = {"node": ((S_NODE,), "inner_nodes"), "triangle": ((S_TRI,), "triangles"),
+              "stack": ((S_STACK_LINK, S_STACK_T), "stack_reads"),
+              "node_treelet": ((S_NODE_TRELET,), "treelet_reads"), "exit_root": ((S_TF,), "root_reads")}
 NO_READ = -1
 
 
@@ -335,7 +341,7 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
                nodes_f, nodes_u, tris_f, tris_u, tris_d, treelet_first, node_treelet,
                fst, ist, loc_link, loc_t, g_link, g_t,
                site_base, site_bytes, site_local, start_sites, start_by_pos, prev_pos, seg_bytes,
-               tags, stamps, params, counts, clock, tally, levels_hit, lanes_out):
+               tags, stamps, params, counts, clock, tally, levels_hit, lanes_out, loads):
     """One kernel launch over the rays `order` (slots, in the launch's order), lane j in warp j // W.
 
     Warps go to units (SMs, cores) a block of `block_warps` at a time, round-robin; each unit keeps
@@ -345,7 +351,7 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
     tally[site] += (transactions, lane requests); levels_hit[site, level] += transactions served by
     that level (last column: DRAM); lanes_out += (warp-iterations, active lane-iterations, entries
     written back, closer hits found,
-    entries pushed). In a bounded step (a wavefront step) the
+    entries pushed, rays that hold entries at a bounded step's end). In a bounded step (a wavefront step) the
     entries each ray that goes on pushed are written back to its global stack when its lane ends."""
     n = len(order)
     n_warps = (n + W - 1) // W
@@ -410,7 +416,10 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
                         lanes_out[3] += ist[s, I_HITS]
                         lanes_out[4] += ist[s, I_PUSHES]
                         if bounded and ist[s, I_DONE] == 0:
-                            lanes_out[2] += _write_back(s, ls, ist, loc_link, loc_t, g_link, g_t)
+                            held = _write_back(s, ls, ist, loc_link, loc_t, g_link, g_t)
+                            lanes_out[2] += held
+                            if held > 0:
+                                lanes_out[5] += 1
                 lanes_out[0] += 1
                 lanes_out[1] += live
                 for k in range(S_START + n_start):
@@ -423,6 +432,7 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
                         e = req[j, k]
                         if e < 0:
                             continue
+                        loads[order[lo + j], k] += 1  # (per ray: locality.check_trace holds it against the kernel)
                         if site_local[k]:   # interleaved per warp: lane j's word e
                             addr[n_req] = site_base[k] + ((slot_id * (cap + 1) + e) * W + j) * size
                         else:

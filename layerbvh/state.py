@@ -55,7 +55,7 @@ STATE_RECORD_WORDS = 8
 STATE_RECORD_BYTES = 4 * STATE_RECORD_WORDS  # ... stored in a 32-byte record (written whole)
 # Work counted per ray when statistics are asked for: RayState field -> Results/Hits name.
 WORK = {"n_inner": "inner_nodes", "n_leaf": "leaves", "n_tri": "triangles", "n_iter": "iterations",
-        "n_steps": "steps"}
+        "n_steps": "steps", "n_stack": "stack_reads", "n_treelet": "treelet_reads", "n_root": "root_reads"}
 # ... and per level in an instanced layout: the inner nodes of those that were of the top level
 # (the rest were inside instances) and the instances entered.
 INSTANCE_WORK = {"n_top": "top_inner_nodes", "n_enter": "instance_entries"}
@@ -111,15 +111,15 @@ class StateRecords:
     FIELDS = LEAN_STATE + ("inst", "hit_inst")
 
     @staticmethod
-    def write(m, s: "RayState"):
-        """The records of the lanes of `s`, in lane order (a flat UInt32 array, 8 words a lane)."""
+    def write(m, s: "RayState", active):
+        """The records of the lanes of `s` where `active` (the rays that go on), in lane order (a
+        flat UInt32 array, 8 words a lane; the others' rows are left unwritten)."""
         n = dr.width(s.link)
         spare = dr.full(m.UInt32, MISS, n)
         words = [dr.reinterpret_array(m.UInt32, s.t)] + [getattr(s, f) for f in LEAN_STATE[1:]] \
             + [s.inst if s.inst is not None else spare, s.hit_inst if s.hit_inst is not None else spare]
         rec = dr.empty(m.UInt32, n * STATE_RECORD_WORDS)
-        dr.scatter(rec, m.ArrayXu(words),
-                   dr.arange(m.UInt32, n))
+        dr.scatter(rec, m.ArrayXu(words), dr.arange(m.UInt32, n), active)
         return rec
 
     @staticmethod
@@ -172,6 +172,9 @@ class RayState:
     n_tri: object = None
     n_iter: object = None
     n_steps: object = None  # kernel calls (wavefront steps, or the per-ray kernel) the ray took part in
+    n_stack: object = None    # global entry-stack entries read (each: link and distance)
+    n_treelet: object = None  # node-treelet lookups (a popped global entry's treelet)
+    n_root: object = None     # exit roots looked up (treelet_first)
     n_top: object = None
     n_enter: object = None
     inst: object = None

@@ -7,27 +7,31 @@ from .wavefront import ENTRY_BYTES
 HIT_BYTES = 16              # t, u, v, prim: what a step writes by slot for each closer hit it finds
 
 
-def sort_traffic(n: int, pushes: int, pushed: int, improved: int, done: int, sort: bool, last: bool) -> int:
+def sort_traffic(n: int, pushes: int, pushed: int, improved: int, done: int, holders: int, sort: bool,
+                 last: bool) -> int:
     """Bytes a wavefront step of `n` rays moves besides its traversal kernel's loads (issue 40's
     design, wavefront.trace): each array element read or written once, all of it counted as DRAM
     traffic (streams far larger than any cache). `pushes` (entries pushed in the step), `pushed`
-    (those the rays that go on still hold at its end), `improved` (closer hits the step found: each
-    is written at once) and `done` (rays that finished) are traced by the replay as the kernel runs.
-    - the step kernel's writes, in lane order: each lane's state record (STATE_RECORD_BYTES, written
-      whole), sort key, held-entry count and stack top; every push into the push buffer as it
-      happens; each closer hit by slot (the finished-ray count and the most entries held are two
-      atomics on one pair of words: no bytes per ray);
+    (those the rays that go on still hold at its end), `holders` (rays holding any), `improved`
+    (closer hits the step found: each is written at once) and `done` (rays that finished) are
+    traced by the replay as the kernel runs.
+    - the step kernel's writes, in lane order: every lane's sort key and held-entry count; the
+      state record (STATE_RECORD_BYTES, written whole) of each ray that goes on and the stack top
+      of each that holds entries; every push into the push buffer as it happens; each closer hit
+      by slot (the finished-ray count and the most entries held are two atomics on one word each:
+      no bytes per ray);
     - then, unless every ray finished: the kernel that moves each held entry above its ray's global
-      stack (counts and tops read, entries read and written), and the sort (block_mkperm reads the
-      keys, writes the permutation) or the compaction (keys read, the rays that go on written);
+      stack (every count read, the holders' tops, entries read and written), and the sort
+      (block_mkperm reads the keys, writes the permutation) or the compaction (keys read, the rays
+      that go on written);
     - the permutation, read by the next step as it gathers each ray's record through it. The
       record gather itself is one of the next kernel's loads (cache-simulated with them).
     The results a ray writes when it finishes are not counted: per_ray writes the same."""
-    kernel = n * (STATE_RECORD_BYTES + 12) + pushes * ENTRY_BYTES + improved * HIT_BYTES
+    left = n - done
+    kernel = n * 8 + left * STATE_RECORD_BYTES + holders * 4 + pushes * ENTRY_BYTES + improved * HIT_BYTES
     if last:
         return kernel
-    left = n - done
-    move = n * 8 + pushed * 2 * ENTRY_BYTES
+    move = n * 4 + holders * 4 + pushed * 2 * ENTRY_BYTES
     order = n * 4 + n * 4 if sort else n * 4 + left * 4  # block_mkperm; compress
     return kernel + move + order + left * 4
 

@@ -105,6 +105,9 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
                                       for c in (s.n_inner, s.n_leaf, s.n_tri, s.n_iter))
     n_steps = m.UInt32(s.n_steps) + 1 if count_work else zero
     n_top, n_enter = (m.UInt32(s.n_top), m.UInt32(s.n_enter)) if count_work and instanced else (zero, zero)
+    # Loads per kind besides node records and triangles (n_inner, n_tri): global entry-stack
+    # entries, node-treelet lookups, exit roots; locality.check_trace holds them against the replay.
+    n_stack, n_treelet, n_root = (m.UInt32(c) if count_work else zero for c in (s.n_stack, s.n_treelet, s.n_root))
     tri_cur, tri_end = m.UInt32(0), m.UInt32(0)
     done = m.Bool(False)
     next_treelet = m.UInt32(s.treelet)
@@ -152,6 +155,8 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
             sp = dr.select(from_global, sp - 1, sp)
             e_link = dr.select(from_global, dr.gather(m.UInt32, stack.link, base + sp, from_global), e_link)
             e_t = dr.select(from_global, dr.gather(m.Float, stack.t, base + sp, from_global), e_t)
+            if count_work:
+                n_stack += dr.select(from_global, m.UInt32(1), m.UInt32(0))
         empty = want & ~from_local & ~from_global
         done |= empty
         active &= ~empty
@@ -174,6 +179,8 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
             tre = dr.select(is_exit, link & PAYLOAD_MASK, s.treelet)
             global_node = other & from_global & ~is_exit
             tre = dr.select(global_node, dr.gather(m.UInt32, lay.node_treelet, link & PAYLOAD_MASK, global_node), tre)
+            if count_work:
+                n_treelet += dr.select(global_node, m.UInt32(1), m.UInt32(0))
             leave = other & (tre != s.treelet)
             next_treelet = dr.select(leave, tre, next_treelet)
             active &= ~leave
@@ -215,6 +222,8 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
             node = m.UInt32(payload)
             if is_exit:  # only the first node of a step (or of the per-ray tail) enters this way
                 node = dr.gather(m.UInt32, lay.treelet_first, payload)
+                if count_work:
+                    n_root += 1
             if count_work:
                 n_inner += 1
                 if instanced:
@@ -272,6 +281,7 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
         out.inst, out.hit_inst = in_inst, hit_inst
     if count_work:
         out.n_inner, out.n_leaf, out.n_tri, out.n_iter, out.n_steps = n_inner, n_leaf, n_tri, n_iter, n_steps
+        out.n_stack, out.n_treelet, out.n_root = n_stack, n_treelet, n_root
         if instanced:
             out.n_top, out.n_enter = n_top, n_enter
     local = [(m.UInt32(loc_link[k]), m.Float(loc_t[k])) for k in range(cap)]

@@ -81,7 +81,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
     buckets = 1 << max(1, (finished).bit_length())
     work = tuple(f for f in s.fields() if f not in StateRecords.FIELDS)  # statistics: the work counters
     # The states as records (state.StateRecords), read by the first step in order.
-    rec = StateRecords.write(m, s)
+    rec = StateRecords.write(m, s, True)
     dr.eval(rec)
     peak = 0
     n_active = n0 = dr.width(s.t)
@@ -103,13 +103,16 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
             break
         # The step's kernel: it gathers each ray's state record by the last sort's permutation,
         # walks, writes the hits it improved (by slot) and the entries each ray pushed (into the
-        # push buffer, by lane) as it goes, and at its end each lane's new record, entry count
-        # and sort key, in lane order.
+        # push buffer, by lane) as it goes, and at its end, in lane order, every lane's sort key
+        # and held-entry count, the record of each ray that goes on and the stack top of each that
+        # holds entries (a finished ray writes no record: on paper_mix most rays finish in step 1).
         out, done, nl, _ = walk(m, lay, rays, s, stack=stack, cap=cap_local, bounded=True, any_hit=any_hit,
                                 count_work=count_work, results=res, push=push)
         keys = out.treelet = dr.select(done, m.UInt32(finished), out.treelet)
-        top = out.slot * cap_global + out.sp - nl  # (where its held entries go: the record's sp counts them)
-        rec = StateRecords.write(m, out)
+        # Where each holder's entries go (the record's sp counts them); written for holders only.
+        top = dr.empty(m.UInt32, dr.width(keys))
+        dr.scatter(top, out.slot * cap_global + out.sp - nl, dr.arange(m.UInt32, dr.width(keys)), nl > 0)
+        rec = StateRecords.write(m, out, ~done)
         counters = [getattr(out, f) for f in work]
         # The rays that finished and the most entries a ray holds, counted by the kernel itself
         # (two atomics on one word each, not two more passes over the keys and counts).

@@ -199,6 +199,12 @@ MUTATIONS = (
              "        s = StateRecords.read(m, rec, perm, instanced)\n",
              "        s = StateRecords.read(m, rec, dr.arange(m.UInt32, dr.width(perm)), instanced)\n",
              ("tests/engine/test_engine_hits.py::test_modes_agree_exactly[incoherent-bunny]",)),
+    Mutation("kernel_reads_one_more_array", "a wavefront step looks up the treelet of every node entry it pops, "
+             "its own pushes included (same hits, one more load per pop: the load-count check must see it)",
+             "layerbvh/walk.py",
+             "global_node = other & from_global & ~is_exit\n",
+             "global_node = other & ~is_exit\n",
+             ("tests/tools/test_locality.py::test_trace_follows_the_kernel[closest-camera-bunny]",)),
     Mutation("closer_hit_not_written", "a wavefront step does not write a closer hit's u and v to the results "
              "(they are no longer carried in the state: issue 40)",
              "layerbvh/walk.py",

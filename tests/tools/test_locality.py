@@ -27,9 +27,11 @@ def _rays(v, kind, n=N_RAYS, seed=5):
 @pytest.mark.parametrize("kind", ["camera", "incoherent"])
 @pytest.mark.parametrize("any_hit", [False, True], ids=["closest", "any"])
 def test_trace_follows_the_kernel(request, mesh_name, kind, any_hit):
-    """Per ray, the replay's hit (prim, t bits) and work counts (inner nodes, leaves, triangles,
-    iterations, kernel calls) equal what the kernel returned, in every mode; the layer modes run
-    many wavefront steps (treelet height 3) and the per-ray tail."""
+    """Per ray, the replay's hit (prim, t bits), work counts (inner nodes, leaves, triangles,
+    iterations, kernel calls) and loads of each kind (node records, triangles, entry-stack entries,
+    node-treelet lookups, exit roots, ray and state records: what it fed to the cache model) equal
+    what the kernel returned and counted, in every mode; the layer modes run many wavefront steps
+    (treelet height 3) and the per-ray tail."""
     v, f = request.getfixturevalue(mesh_name)
     o, d, tmax = _rays(v, kind)
     if any_hit:  # shadow-like: finite tmax, some rays stop short of the mesh
@@ -38,7 +40,10 @@ def test_trace_follows_the_kernel(request, mesh_name, kind, any_hit):
     for mode in layerbvh.MODES:
         rep = L.replay(bvh.layout, o, d, tmax, mode, any_hit, 32, preset("gtx965m"), bvh.tail_rays, bvh.tail_fraction)
         chk = L.check_trace(bvh, o, d, tmax, any_hit, rep)
-        assert chk.exact, f"{mode}: {chk.hit_mismatches} hits and {chk.work_mismatches} work counts differ"
+        assert chk.exact, (f"{mode}: {chk.hit_mismatches} hits, {chk.work_mismatches} work counts and "
+                           f"{chk.load_mismatches} loads differ")
+        if mode != "per_ray":  # (the check covers loads the layer steps make)
+            assert all(rep.loads[k].sum() > 0 for k in ("stack", "node_treelet", "exit_root", "state")), rep.loads
         assert (rep.prim != layerbvh.MISS).mean() > (0.05 if any_hit else 0.2), "test rays should hit"
         if mode != "per_ray":
             assert rep.kernels > (1 if any_hit else 3), f"{mode} ran {rep.kernels} kernels: no wavefront steps"

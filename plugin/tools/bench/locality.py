@@ -230,7 +230,7 @@ def benchmarks_section(doc: dict, fig_rel: str) -> str:
         parts += [f"### {scene} ({info['triangles']:,} triangles)", "",
                   f"Rays recorded at {info['resolution'][0]}x{info['resolution'][1]}, {info['spp']} spp: {kinds}"
                   + (f", each sampled to at most {info['sampled']:,}" if info.get("sampled") else "") + ". Trace "
-                  + ("checked against the kernel: every ray's hit and work counts equal." if exact else
+                  + ("checked against the kernel: every ray's hit, work counts and loads of each kind equal." if exact else
                      "check FAILED on some rays: see the run's summary.md."), ""]
         parts += [f"- {v}" for v in preset_verdict(rows).values()] + [""]
         for pre in dict.fromkeys(r.preset for r in rows):
@@ -358,9 +358,10 @@ def table_md(rows: list) -> str:
 
 def summary_md(doc: dict, command: str) -> str:
     bad = [c for c in doc["checks"] if not c["exact"]]
-    check = ("every mode's trace matched the kernel on every ray (hits and work counts)" if not bad else
+    check = ("every mode's trace matched the kernel on every ray (hits, work counts, loads per kind)" if not bad else
              f"{len(bad)} trace check(s) found rays where the replay and the kernel differ: " +
-             "; ".join(f"{c['kind']} {c['mode']}: {c['hit_mismatches']} hits, {c['work_mismatches']}" for c in bad))
+             "; ".join(f"{c['kind']} {c['mode']}: {c['hit_mismatches']} hits, {c['work_mismatches']}, loads "
+             f"{c.get('load_mismatches')}" for c in bad))
     lines = [f"# Locality: {doc['scene']}", "", f"Command: `{command}`", "",
              f"{doc['triangles']:,} triangles; rays recorded at {doc['resolution'][0]}x{doc['resolution'][1]}, "
              f"{doc['spp']} spp: " + ", ".join(f"{k} {v['recorded']:,}" for k, v in doc["kinds"].items())
