@@ -158,7 +158,8 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         for f, c in zip(work, counters):
             setattr(s, f, dr.gather(m.UInt32, c, perm))
         te = _sync()
-        peak = max(peak, n_step * (STATE_RECORD_BYTES + 16 + 4 * len(work)))  # records, keys, nl, top, perm
+        # the records read and those written (both alive during a step), keys, counts, tops, permutation
+        peak = max(peak, n_step * (2 * STATE_RECORD_BYTES + 16 + 8 * len(work)))
         stats.steps += 1
         stats.time_traverse_s += tb - ta
         stats.time_other_s += td - tb

@@ -9,8 +9,9 @@ packages, ahead of the editable install of the original checkout), prints one li
 the file back. First the union of all listed tests runs on the unmutated copy (the baseline): a
 test that fails there would "catch" anything.
 
-Exit status 0 when every mutation is caught; 1 when one is missed, not applicable or its run
-broke (a collection error or a timeout is not a catch); 2 when the baseline fails or the copy
+A listed test whose process crashes (a signal; Python's fault handler names the test's file in
+the stack) also catches it: the suite stops there and names the test. Exit status 0 when every
+mutation is caught; 1 when one is missed, not applicable or its run broke (a collection error or a timeout is not a catch); 2 when the baseline fails or the copy
 does not import its own packages.
 
     bash scripts/mutation_check.sh [--only NAME,...] [--list] [--dry-run] [--no-baseline] [--keep]
@@ -255,6 +256,17 @@ def run_tests(python: str, copy: Path, env: dict, tests, timeout: float) -> tupl
     return p.returncode, p.stdout + p.stderr
 
 
+def crash_site(rc: int | None, output: str, tests) -> str | None:
+    """The listed test whose file Python's fault handler names in the crashed process's stack, when
+    pytest was killed by a signal (a mutation that makes a kernel read out of bounds crashes the
+    test that runs it: caught, as the suite's run fails there); None otherwise (a crash at import
+    or elsewhere is not a catch)."""
+    if rc is None or rc >= 0 or "Fatal Python error" not in output:
+        return None
+    stack = output[output.index("Fatal Python error"):]
+    return next((t for t in tests if f'{t.split("::")[0]}", line' in stack), None)
+
+
 def first_failure(output: str, width: int = 90) -> str:
     """The first failed test of pytest's -rf summary, with the start of its message."""
     m = re.search(r"^FAILED (\S+)(?: - (.*))?$", output, re.M)
@@ -342,8 +354,12 @@ def main(argv=None) -> int:
             finally:
                 target.write_text(text)
             dt = time.perf_counter() - t0
+            crashed_in = crash_site(rc, out, m.tests)
             if rc == 1:
                 print(f"{m.name:34s} caught   by {first_failure(out)} ({dt:.0f} s)", flush=True)
+            elif crashed_in:
+                print(f"{m.name:34s} caught   by {crashed_in}: the test's process crashed (signal {-rc}; the suite "
+                      f"stops there, naming it) ({dt:.0f} s)", flush=True)
             else:
                 bad += 1
                 why = "MISSED" if rc == 0 else ("ERROR    (timeout)" if rc is None else f"ERROR    (pytest exit {rc})")
