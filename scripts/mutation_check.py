@@ -9,8 +9,8 @@ packages, ahead of the editable install of the original checkout), prints one li
 the file back. First the union of all listed tests runs on the unmutated copy (the baseline): a
 test that fails there would "catch" anything.
 
-A listed test whose process crashes (a signal; Python's fault handler names the test's file in
-the stack) also catches it: the suite stops there and names the test. Exit status 0 when every
+A listed test whose process crashes (a signal, while pytest -v shows that test running) also
+catches it: the suite stops there and names the test. Exit status 0 when every
 mutation is caught; 1 when one is missed, not applicable or its run broke (a collection error or a timeout is not a catch); 2 when the baseline fails or the copy
 does not import its own packages.
 
@@ -247,8 +247,8 @@ def import_path(copy: Path) -> Path:
 
 def run_tests(python: str, copy: Path, env: dict, tests, timeout: float) -> tuple[int | None, str]:
     """pytest -x on `tests` in the copy: (exit status or None on timeout, output)."""
-    cmd = [python, "-m", "pytest", "-x", "-q", "-n", "0", "-p", "no:cacheprovider", "-p", "no:randomly",
-           "--no-header", "-rf", *tests]
+    cmd = [python, "-m", "pytest", "-x", "-v", "-n", "0", "-p", "no:cacheprovider", "-p", "no:randomly",
+           "--no-header", "-rf", *tests]  # (-v: each test's id is printed as it starts; see crash_site)
     try:
         p = subprocess.run(cmd, cwd=copy, env=env, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired as e:
@@ -257,14 +257,16 @@ def run_tests(python: str, copy: Path, env: dict, tests, timeout: float) -> tupl
 
 
 def crash_site(rc: int | None, output: str, tests) -> str | None:
-    """The listed test whose file Python's fault handler names in the crashed process's stack, when
-    pytest was killed by a signal (a mutation that makes a kernel read out of bounds crashes the
+    """The listed test that was running when pytest was killed by a signal (a mutation that makes a kernel read out of bounds crashes the
     test that runs it: caught, as the suite's run fails there); None otherwise (a crash at import
     or elsewhere is not a catch)."""
-    if rc is None or rc >= 0 or "Fatal Python error" not in output:
+    if rc is None or rc >= 0:
         return None
-    stack = output[output.index("Fatal Python error"):]
-    return next((t for t in tests if f'{t.split("::")[0]}", line' in stack), None)
+    # pytest -v prints a test's id when it starts and its result when it ends: the last id printed
+    # without a result is the test that was running.
+    started = re.findall(r"^(\S+::\S+) (?!PASSED|FAILED|SKIPPED|ERROR|XFAIL|XPASS)", output, re.M)
+    running = started[-1] if started else None
+    return next((t for t in tests if running is not None and running.endswith(t)), None)
 
 
 def first_failure(output: str, width: int = 90) -> str:
