@@ -43,12 +43,13 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, *, stack: EntryStack | None, c
     continues in, and its local entries for write-back.
 
     In a wavefront step (the layer modes, issue 40) the kernel keeps its own books, so that
-    between steps a ray moves only its lean state (state.LEAN_STATE): with `results` given, a ray
+    between steps a ray moves only its state record (state.StateRecords): with `results` given, a ray
     writes each closer hit's t, u, v and prim there by slot as it finds it (so `s` need not carry
     u and v); with `push` (state.PushBuffer), each push is also written to the lane's rows of the
     push buffer as it happens, so at the end its first `nl` rows hold the entries the ray still
     holds (never all `cap` local slots read out); the count returned is 0 for a ray that
-    finished, and the local entries returned are none.
+    finished, the state's sp already counts the entries held (they go above its global stack
+    after the step), and the local entries returned are none.
 
     In a bounded step, an entry's treelet is known without a lookup where it matters: entries
     pushed in this step belong to the step's treelet unless they are exits (which name theirs);
