@@ -109,9 +109,10 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         out, done, nl, _ = walk(m, lay, rays, s, stack=stack, cap=cap_local, bounded=True, any_hit=any_hit,
                                 count_work=count_work, results=res, push=push)
         keys = out.treelet = dr.select(done, m.UInt32(finished), out.treelet)
+        n_step = dr.width(keys)
         # Where each holder's entries go (the record's sp counts them); written for holders only.
-        top = dr.empty(m.UInt32, dr.width(keys))
-        dr.scatter(top, out.slot * cap_global + out.sp - nl, dr.arange(m.UInt32, dr.width(keys)), nl > 0)
+        top = dr.empty(m.UInt32, n_step)
+        dr.scatter(top, out.slot * cap_global + out.sp - nl, dr.arange(m.UInt32, n_step), nl > 0)
         rec = StateRecords.write(m, out, ~done)
         counters = [getattr(out, f) for f in work]
         # The rays that finished and the most entries a ray holds, counted by the kernel itself
@@ -126,7 +127,6 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         # stacks make Dr.Jit copy them whole before the scatters below: copy-on-write)
         n_done, most = int(n_done_w[0]), int(most_w[0])
         tb = _sync()
-        n_step = dr.width(keys)
         n_active -= n_done
         if n_active == 0:
             stats.steps += 1
