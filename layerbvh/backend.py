@@ -7,6 +7,16 @@ import platform
 from pathlib import Path
 
 import drjit as dr
+import numpy as np
+
+# Byte alignment of every numpy array handed to Dr.Jit (a cache line; an AVX-512 packet).
+# Dr.Jit 1.5 maps a contiguous numpy array's memory as it is, without a copy. A kernel that reads
+# an array not aligned to its packet is compiled with `align 1` loads: another kernel hash for the
+# same code, so each kernel compiled once per alignment pattern of its inputs (numpy's malloc
+# gives 16-byte alignment, so the pattern is chance: ~4,200 kernels compiled in the test suite,
+# issue 39), and a gather from it falls back to one vpgatherdd per float (layout.py).
+ALIGN = 64
+
 
 
 def module(backend: str):
@@ -16,6 +26,24 @@ def module(backend: str):
     if backend == "cuda":
         return dr.cuda
     raise ValueError(f"backend must be 'llvm' or 'cuda', got {backend!r}")
+
+
+def aligned(a: np.ndarray, align: int = ALIGN) -> np.ndarray:
+    """`a` itself if it is contiguous and starts on an `align`-byte boundary, else such a copy."""
+    if a.flags.c_contiguous and a.ctypes.data % align == 0:
+        return a
+    buf = np.empty(a.nbytes + align, np.uint8)
+    start = -buf.ctypes.data % align
+    out = buf[start:start + a.nbytes].view(a.dtype).reshape(a.shape)
+    out[...] = a
+    return out
+
+
+def from_numpy(T, a):
+    """Dr.Jit array of type `T` (any backend, AD or not) holding numpy array `a`, mapped from
+    aligned memory (see ALIGN): every numpy array goes to Dr.Jit through here. A Dr.Jit array
+    is converted as `T(a)` would."""
+    return T(a) if dr.is_array_v(a) else T(aligned(np.asarray(a)))
 
 
 def default_backend() -> str:

@@ -130,7 +130,7 @@ def _name(arg: str, c: int, x, xs, given) -> str:
 def _broadcast(m, x, n: int):
     """A Dr.Jit array of width n from a column of width n or 1."""
     if be.backend_of(x) is None:
-        x = m.Float(x) if x.dtype == np.float32 else m.Bool(x)
+        x = be.from_numpy(m.Float if x.dtype == np.float32 else m.Bool, x)
     if dr.width(x) == n:
         return x
     return dr.gather(type(x), x, dr.zeros(m.UInt32, n))

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from .backend import from_numpy
 from .collapse import collapse
 from .sah import BinaryBVH, build_binned_sah, triangle_bounds
 
@@ -116,15 +117,6 @@ LEAF_COUNT = 1          # number of triangles
 LEAF_UINTS = 2          # total: 8 bytes
 
 
-def _aligned(a: np.ndarray, align: int = 64) -> np.ndarray:
-    """A copy of `a` whose data starts on an `align`-byte boundary."""
-    buf = np.empty(a.nbytes + align, np.uint8)
-    start = -buf.ctypes.data % align
-    out = buf[start:start + a.nbytes].view(a.dtype).reshape(a.shape)
-    out[...] = a
-    return out
-
-
 def leaf_link(first, count):
     """The link of a leaf holding triangles first .. first+count-1 (leaf order); numpy or Dr.Jit."""
     return LEAF_BIT | (count << LEAF_COUNT_SHIFT) | first
@@ -216,12 +208,13 @@ class LayerLayout:
         """The arrays on Dr.Jit array module `m` (backend.module)."""
         # Dr.Jit maps numpy memory as it is; an array that is not 64-byte aligned cannot be read
         # with packet gathers (8-float loads plus a transpose) and falls back to one vpgatherdd
-        # per float, so the records go to the device from aligned copies.
+        # per float, so the arrays go to the device from aligned memory (backend.from_numpy).
         return DeviceLayout(
-            nodes=m.Float(_aligned(self.nodes)), tris=m.Float(_aligned(self.tris)),
-            treelet_first=m.UInt32(self.treelet_first), node_treelet=m.UInt32(self.node_treelet),
+            nodes=from_numpy(m.Float, self.nodes), tris=from_numpy(m.Float, self.tris),
+            treelet_first=from_numpy(m.UInt32, self.treelet_first),
+            node_treelet=from_numpy(m.UInt32, self.node_treelet),
             depth=self.depth, height=self.height, treelet_count=self.treelet_count, branching=self.branching,
-            instances=None if self.instances is None else m.Float(_aligned(self.instances)))
+            instances=None if self.instances is None else from_numpy(m.Float, self.instances))
 
     def array_bytes(self) -> dict:
         """Bytes of each array the traversal keeps on the device (see DeviceLayout)."""

@@ -7,14 +7,15 @@ from pathlib import Path
 import drjit as dr
 import numpy as np
 
+from .backend import from_numpy
 from .inputs import check_mesh
 
 
 def device_rays(m, o: np.ndarray, d: np.ndarray):
     """Origins and directions (N, 3) as evaluated Array3f of Dr.Jit module `m` (the ray batch a
     benchmark moves to the device once, outside its timing)."""
-    o_dev = m.Array3f(*(m.Float(np.ascontiguousarray(o[:, c])) for c in range(3)))
-    d_dev = m.Array3f(*(m.Float(np.ascontiguousarray(d[:, c])) for c in range(3)))
+    o_dev = m.Array3f(*(from_numpy(m.Float, o[:, c]) for c in range(3)))
+    d_dev = m.Array3f(*(from_numpy(m.Float, d[:, c]) for c in range(3)))
     dr.eval(o_dev, d_dev)
     return o_dev, d_dev
 

@@ -112,7 +112,7 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
     tri_cur, tri_end = m.UInt32(0), m.UInt32(0)
     done = m.Bool(False)
     next_treelet = m.UInt32(s.treelet)
-    base = s.slot * stack.rows if stack is not None else m.UInt32(0)
+    base = s.slot * dr.opaque(m.UInt32, stack.rows) if stack is not None else m.UInt32(0)  # (opaque: one kernel per tree depth)
     active = dr.full(m.Bool, True, dr.width(s.link)) if active is None else m.Bool(active)
 
     while active:

@@ -34,6 +34,18 @@ def stack_rows(lay: DeviceLayout) -> int:
     return max(1, (lay.branching - 1) * lay.depth)
 
 
+# A walk's local stack is a fixed-size array in the kernel (an alloca: its size is a literal of
+# the kernel's code). Its slots are rounded up to a multiple of this, so trees of similar depth
+# share one compiled kernel instead of compiling one per depth (issue 39: the suite's time is
+# mostly LLVM compiling). Spare local slots cost a few bytes of thread stack, no traffic.
+LOCAL_ROWS_STEP = 16
+
+
+def local_rows(rows: int) -> int:
+    """Local stack slots for a walk that may hold `rows` entries (LOCAL_ROWS_STEP)."""
+    return -(-rows // LOCAL_ROWS_STEP) * LOCAL_ROWS_STEP
+
+
 def _sync():
     dr.sync_thread()
     return time.perf_counter()
@@ -54,7 +66,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
     rays = SlotRays(m, batch.o, batch.d) if mode == "per_ray" else RayRecords(m, batch.o, batch.d)
     t0 = _sync()
     if mode == "per_ray":
-        cap = stack_rows(lay)
+        cap = local_rows(stack_rows(lay))
         out, done, _, _ = walk(m, lay, rays, s, stack=None, cap=cap, bounded=False, any_hit=any_hit,
                               count_work=count_work)
         res.write(out, done)
@@ -78,6 +90,9 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
     stack = EntryStack(st_link, st_t, cap_global)
     push = PushBuffer(dr.empty(m.UInt32, n * cap_local), dr.empty(m.Float, n * cap_local), cap_local)
     finished = lay.treelet_count  # bucket after every treelet: finished rays sort last
+    # Per-tree numbers enter the kernels opaque (kernel parameters, not literals), so one
+    # compiled kernel serves every tree (issue 39).
+    finished_key, stride = dr.opaque(m.UInt32, finished), dr.opaque(m.UInt32, cap_global)
     buckets = 1 << max(1, (finished).bit_length())
     work = tuple(f for f in s.fields() if f not in StateRecords.FIELDS)  # statistics: the work counters
     # The states as records (state.StateRecords), read by the first step in order.
@@ -93,7 +108,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         ta = _sync()
         if takes_tail(n_active, n0, stats.steps, tail_rays, tail_fraction):
             # Same nearest-first order as the steps, so the same hits and work counts.
-            out, done, _, _ = walk(m, lay, rays, s, stack=stack, cap=cap_global, bounded=False, any_hit=any_hit,
+            out, done, _, _ = walk(m, lay, rays, s, stack=stack, cap=local_rows(cap_global), bounded=False, any_hit=any_hit,
                                   count_work=count_work, results=res)
             res.write(out, done)  # (the work counters: the kernel wrote the hits)
             dr.eval(*res.arrays())
@@ -108,11 +123,11 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         # holds entries (a finished ray writes no record: on paper_mix most rays finish in step 1).
         out, done, nl, _ = walk(m, lay, rays, s, stack=stack, cap=cap_local, bounded=True, any_hit=any_hit,
                                 count_work=count_work, results=res, push=push)
-        keys = out.treelet = dr.select(done, m.UInt32(finished), out.treelet)
+        keys = out.treelet = dr.select(done, finished_key, out.treelet)
         n_step = dr.width(keys)
         # Where each holder's entries go (the record's sp counts them); written for holders only.
         top = dr.empty(m.UInt32, n_step)
-        dr.scatter(top, out.slot * cap_global + out.sp - nl, dr.arange(m.UInt32, n_step), nl > 0)
+        dr.scatter(top, out.slot * stride + out.sp - nl, dr.arange(m.UInt32, n_step), nl > 0)
         rec = StateRecords.write(m, out, ~done)
         counters = [getattr(out, f) for f in work]
         # The rays that finished and the most entries a ray holds, counted by the kernel itself
@@ -153,7 +168,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
             perm = dr.detail.block_mkperm(keys, n_step, buckets) if buckets <= (1 << 16) else dr.argsort(keys)
             perm = dr.gather(m.UInt32, perm, dr.arange(m.UInt32, n_active))  # (lazy: read by the next step)
         else:
-            perm = dr.compress(keys != finished)  # (not ~done: an unevaluated kernel output re-runs it)
+            perm = dr.compress(keys != finished_key)  # (not ~done: an unevaluated kernel output re-runs it)
         s = StateRecords.read(m, rec, perm, instanced)
         for f, c in zip(work, counters):
             setattr(s, f, dr.gather(m.UInt32, c, perm))
@@ -177,6 +192,6 @@ def trace_inline(m, lay: DeviceLayout, o, d, tmax, active, *, any_hit: bool) -> 
     n = max(dr.width(x) for x in (*o, *d, tmax, active))
     s = RayState.start(m, dr.zeros(m.Float, n) + m.Float(tmax), count_work=False,  # one tmax per lane
                        instanced=lay.instances is not None)
-    out, _, _, _ = walk(m, lay, DirectRays(o, d), s, stack=None, cap=stack_rows(lay), bounded=False, any_hit=any_hit,
+    out, _, _, _ = walk(m, lay, DirectRays(o, d), s, stack=None, cap=local_rows(stack_rows(lay)), bounded=False, any_hit=any_hit,
                        count_work=False, active=active)
     return out

@@ -6,6 +6,7 @@ import mitsuba as mi
 import numpy as np
 
 from layerbvh import MISS
+from layerbvh.backend import from_numpy
 from layerbvh_mitsuba.ab.render import use_variant
 
 
@@ -23,8 +24,8 @@ def _mesh(name: str, vertices: np.ndarray, faces: np.ndarray):
     f = np.ascontiguousarray(faces, np.uint32)
     mesh = mi.Mesh(name, vertex_count=len(v), face_count=len(f), has_vertex_normals=False, has_vertex_texcoords=False)
     params = mi.traverse(mesh)
-    params["vertex_positions"] = mi.Float(v.reshape(-1))
-    params["faces"] = mi.UInt32(f.reshape(-1))
+    params["vertex_positions"] = from_numpy(mi.Float, v.reshape(-1))
+    params["faces"] = from_numpy(mi.UInt32, f.reshape(-1))
     params.update()
     return mesh
 
@@ -60,10 +61,10 @@ def intersect_instanced(scene, o: np.ndarray, d: np.ndarray):
 
 
 def rays(o: np.ndarray, d: np.ndarray, tmax=None):
-    ray = mi.Ray3f(mi.Point3f(*(mi.Float(np.ascontiguousarray(o[:, c], np.float32)) for c in range(3))),
-                   mi.Vector3f(*(mi.Float(np.ascontiguousarray(d[:, c], np.float32)) for c in range(3))))
+    ray = mi.Ray3f(mi.Point3f(*(from_numpy(mi.Float, np.asarray(o[:, c], np.float32)) for c in range(3))),
+                   mi.Vector3f(*(from_numpy(mi.Float, np.asarray(d[:, c], np.float32)) for c in range(3))))
     if tmax is not None:
-        ray.maxt = mi.Float(np.broadcast_to(np.asarray(tmax, np.float32), (len(o),)).copy())
+        ray.maxt = from_numpy(mi.Float, np.broadcast_to(np.asarray(tmax, np.float32), (len(o),)))
     return ray
 
 

@@ -12,6 +12,7 @@ import mitsuba as mi
 import numpy as np
 
 import layerbvh
+from layerbvh.backend import from_numpy
 from layerbvh_mitsuba.runtime.queries import RayQueries
 
 # Per-ray work kept per sample for the traversal-cost heat maps (state.WORK names).
@@ -353,15 +354,15 @@ class SceneTracer(RayQueries):
             first = np.cumsum([0] + [len(gr.faces) for gr in g.groups])
             # Per engine instance: its group's first triangle in the tables below, and the
             # Mitsuba Instance it is (WORLD for the scene's own meshes).
-            self.place_first = mi.UInt32(np.array([first[p.group] for p in g.placements], np.uint32))
-            self.place_shape = mi.UInt32(np.array([WORLD if p.instance is None else p.instance
-                                                   for p in g.placements], np.uint32))
-            self.tri_shape = mi.UInt32(np.concatenate([gr.tri_shape for gr in g.groups]))
-            self.tri_local = mi.UInt32(np.concatenate([gr.tri_local for gr in g.groups]))
+            self.place_first = from_numpy(mi.UInt32, np.array([first[p.group] for p in g.placements], np.uint32))
+            self.place_shape = from_numpy(mi.UInt32, np.array([WORLD if p.instance is None else p.instance
+                                                                for p in g.placements], np.uint32))
+            self.tri_shape = from_numpy(mi.UInt32, np.concatenate([gr.tri_shape for gr in g.groups]))
+            self.tri_local = from_numpy(mi.UInt32, np.concatenate([gr.tri_local for gr in g.groups]))
         else:
             self.bvh = layerbvh.build(g.vertices, g.faces, **params)
-            self.tri_shape = mi.UInt32(g.tri_shape)
-            self.tri_local = mi.UInt32(g.tri_local)
+            self.tri_shape = from_numpy(mi.UInt32, g.tri_shape)
+            self.tri_local = from_numpy(mi.UInt32, g.tri_local)
         # numba's one-time kernel load is not build time (bvh.stats.kernel_load_s reports it).
         self.build_s = time.perf_counter() - t0 - self.bvh.stats.kernel_load_s
         self.reset_counters()

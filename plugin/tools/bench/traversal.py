@@ -20,6 +20,7 @@ import numpy as np
 
 import layerbvh
 from layerbvh import meshes
+from layerbvh.backend import from_numpy
 from layerbvh_mitsuba import atomic
 from layerbvh_mitsuba.ab import embree
 from layerbvh_mitsuba.ab.render import use_variant
@@ -201,7 +202,7 @@ def make_configs(scene, embree_build_s, bvhs: dict, o, d, tmax, any_hit: bool, b
     # Rays go to the device once, outside the timing, for Embree and layerbvh alike.
     m = getattr(dr, backend)
     o_dev, d_dev = meshes.device_rays(m, o, d)
-    tmax_dev = m.Float(np.ascontiguousarray(tmax, np.float32)) if tmax is not None else None
+    tmax_dev = from_numpy(m.Float, np.asarray(tmax, np.float32)) if tmax is not None else None
     dr.eval(tmax_dev)
     first = next(iter(bvhs))
     configs = [embree_config(scene, o, d, tmax, any_hit, embree_build_s)]

@@ -30,6 +30,7 @@ import numpy as np
 
 import layerbvh
 from layerbvh import MAX_DEPTH, MISS, meshes
+from layerbvh.backend import from_numpy
 from layerbvh_mitsuba.ab import embree, metrics
 from layerbvh_mitsuba.ab.compare import CompareSettings, compare
 from layerbvh_mitsuba.ab.render import load_scene, use_variant
@@ -588,7 +589,7 @@ def spawn_ray_self_hits(scale):
         own = np.array(pi.prim_index)[hit0]
         out = rng.normal(size=(n, 3)).astype(np.float32)
         out /= np.linalg.norm(out, axis=1, keepdims=True)
-        ray2 = si.spawn_ray(mi.Vector3f(*(mi.Float(out[:, c]) for c in range(3))))
+        ray2 = si.spawn_ray(mi.Vector3f(*(from_numpy(mi.Float, out[:, c]) for c in range(3))))
         o2 = np.stack([np.array(ray2.o[c]) for c in range(3)], 1)[hit0]
         d2 = np.stack([np.array(ray2.d[c]) for c in range(3)], 1)[hit0]
         h = tracer.bvh.trace(o2, d2, mode="layer_sorted", stats=False)
@@ -649,7 +650,7 @@ def bad_data(scale):
         key = next(k for k in params.keys() if k.endswith("vertex_positions"))
         pos = np.array(params[key])
         pos[3 * 17 + 1] = bad
-        params[key] = mi.Float(pos)
+        params[key] = from_numpy(mi.Float, pos)
         params.update()
         try:
             SceneTracer(scene)
