@@ -198,4 +198,9 @@ def ray_batch(m, backend: str, origins, directions, tmax=None, active=None) -> R
     valid = finite & nonzero & ~dr.isnan(tm) & (tm > 0)
     if "active" in parts:
         valid &= _broadcast(m, parts["active"][0], n)
+    # Evaluated together, in one kernel: the traversal gathers each column separately (batches,
+    # ray records), and Dr.Jit evaluates a gather's unevaluated source on its own, so a caller's
+    # lazy rays (a renderer's shading) were computed once per column, each a kernel of its own
+    # to compile (issue 39: 3 of every 4 kernels of a counted render were such repeats).
+    dr.eval(o, d, tm, valid)
     return RayBatch(o, d, tm, valid, on_device)

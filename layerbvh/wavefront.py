@@ -35,15 +35,15 @@ def stack_rows(lay: DeviceLayout) -> int:
 
 
 # A walk's local stack is a fixed-size array in the kernel (an alloca: its size is a literal of
-# the kernel's code). Its slots are rounded up to a multiple of this, so trees of similar depth
-# share one compiled kernel instead of compiling one per depth (issue 39: the suite's time is
-# mostly LLVM compiling). Spare local slots cost a few bytes of thread stack, no traffic.
-LOCAL_ROWS_STEP = 16
+# the kernel's code). Its slots are rounded up to a power of two (at least LOCAL_ROWS_MIN), so
+# trees of similar depth share one compiled kernel instead of compiling one per depth (issue 39:
+# the suite's time is mostly LLVM compiling). Spare slots cost thread stack, never traffic.
+LOCAL_ROWS_MIN = 16
 
 
 def local_rows(rows: int) -> int:
-    """Local stack slots for a walk that may hold `rows` entries (LOCAL_ROWS_STEP)."""
-    return -(-rows // LOCAL_ROWS_STEP) * LOCAL_ROWS_STEP
+    """Local stack slots for a walk that may hold `rows` entries (LOCAL_ROWS_MIN)."""
+    return max(LOCAL_ROWS_MIN, 1 << (rows - 1).bit_length())
 
 
 def _sync():

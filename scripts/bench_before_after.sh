@@ -2,6 +2,7 @@
 # Before/after a change: `layerbvh compare` of the same scenes (128x128, 16 spp, per_ray) by the code
 # at REV (a git worktree put ahead of the editable install on PYTHONPATH) and by the working tree,
 # interleaved, two runs each. Prints the CPU, the vector width and each run's summary line.
+# TRAVERSAL (default per_ray) picks the traversal of both sides.
 #   bash scripts/bench_before_after.sh REV [SCENE ...]
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -25,7 +26,7 @@ for scene in ${scenes[@]}; do
   for run in 1 2; do
     for side in before after; do
       pp=""; [ "$side" = before ] && pp="$work/pp"
-      line=$(PYTHONPATH=$pp $PY -m layerbvh_mitsuba.cli compare "$scene" --res 128 128 --spp 16 --traversal per_ray \
+      line=$(PYTHONPATH=$pp $PY -m layerbvh_mitsuba.cli compare "$scene" --res 128 128 --spp 16 --traversal "${TRAVERSAL:-per_ray}" \
              --out "$work/cmp_$side" --no-progress | sed -n 1p)
       echo "$scene run $run $side: $line"
     done

@@ -212,6 +212,29 @@ MUTATIONS = (
              "for dst, src in ((results.t, t), (results.u, u), (results.v, v), (results.prim, prim)):",
              "for dst, src in ((results.t, t), (results.prim, prim)):",
              ("tests/engine/test_engine_hits.py::test_modes_agree_exactly[camera-bunny]",)),
+    Mutation("numpy_mapped_unaligned", "numpy arrays go to Dr.Jit as they are (a kernel per alignment of its "
+             "inputs: the suite compiles thousands of kernels more)",
+             "layerbvh/backend.py",
+             "return T(a) if dr.is_array_v(a) else T(aligned(np.asarray(a)))",
+             "return T(a) if dr.is_array_v(a) else T(np.asarray(a))",
+             ("tests/engine/test_engine_kernels.py::test_numpy_inputs_compile_one_kernel_whatever_their_alignment",)),
+    Mutation("treelet_count_literal", "the finished rays' sort key enters the step kernel as a literal (a kernel "
+             "per tree)",
+             "layerbvh/wavefront.py",
+             "finished_key, stride = dr.opaque(m.UInt32, finished), dr.opaque(m.UInt32, cap_global)",
+             "finished_key, stride = m.UInt32(finished), dr.opaque(m.UInt32, cap_global)",
+             ("tests/engine/test_engine_kernels.py::test_a_second_tree_compiles_no_new_kernel[layer_sorted]",)),
+    Mutation("lazy_rays_per_column", "a caller's lazy rays are not evaluated together: each column the traversal "
+             "gathers computes them again, in a kernel of its own",
+             "layerbvh/inputs.py",
+             "    dr.eval(o, d, tm, valid)\n    return RayBatch(o, d, tm, valid, on_device)",
+             "    return RayBatch(o, d, tm, valid, on_device)",
+             ("tests/engine/test_engine_kernels.py::test_lazy_rays_are_computed_in_one_kernel[layer_sorted]",)),
+    Mutation("local_stack_per_depth", "a walk's local stack is sized to the tree's exact depth (a kernel per depth)",
+             "layerbvh/wavefront.py",
+             "return max(LOCAL_ROWS_MIN, 1 << (rows - 1).bit_length())",
+             "return rows",
+             ("tests/engine/test_engine_kernels.py::test_a_second_tree_compiles_no_new_kernel[per_ray]",)),
 )
 
 

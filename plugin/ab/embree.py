@@ -5,8 +5,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from layerbvh import MISS
-from layerbvh.backend import from_numpy
+from layerbvh import MISS, from_numpy
 from layerbvh_mitsuba.ab.render import use_variant
 
 

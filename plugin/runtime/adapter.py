@@ -12,7 +12,7 @@ import mitsuba as mi
 import numpy as np
 
 import layerbvh
-from layerbvh.backend import from_numpy
+from layerbvh import from_numpy
 from layerbvh_mitsuba.runtime.queries import RayQueries
 
 # Per-ray work kept per sample for the traversal-cost heat maps (state.WORK names).

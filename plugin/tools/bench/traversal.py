@@ -19,8 +19,7 @@ import mitsuba as mi
 import numpy as np
 
 import layerbvh
-from layerbvh import meshes
-from layerbvh.backend import from_numpy
+from layerbvh import from_numpy, meshes
 from layerbvh_mitsuba import atomic
 from layerbvh_mitsuba.ab import embree
 from layerbvh_mitsuba.ab.render import use_variant

@@ -29,8 +29,7 @@ from typing import Callable
 import numpy as np
 
 import layerbvh
-from layerbvh import MAX_DEPTH, MISS, meshes
-from layerbvh.backend import from_numpy
+from layerbvh import MAX_DEPTH, MISS, from_numpy, meshes
 from layerbvh_mitsuba.ab import embree, metrics
 from layerbvh_mitsuba.ab.compare import CompareSettings, compare
 from layerbvh_mitsuba.ab.render import load_scene, use_variant

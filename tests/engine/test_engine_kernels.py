@@ -1,0 +1,77 @@
+"""One compiled kernel serves every tree and every input alignment: what the suite's and a user's first-run time rest on (issue 39: most of it is LLVM compiling kernels)."""
+from __future__ import annotations
+
+import drjit as dr
+import numpy as np
+import pytest
+
+import layerbvh
+from layerbvh import backend as be
+from layerbvh import meshes
+
+
+def _launched(fn) -> set[str]:
+    """Hashes of the compiled (JIT) kernels `fn` launches."""
+    was = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()  # what came before is not ours
+    try:
+        fn()
+        return {k["hash"] for k in dr.kernel_history() if k.get("hash")}
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, was)
+
+
+def _misaligned(a: np.ndarray) -> np.ndarray:
+    """A copy of `a` whose data starts 4 bytes past a 64-byte boundary."""
+    buf = np.empty(a.nbytes + 128, np.uint8)
+    start = -buf.ctypes.data % 64 + 4
+    out = buf[start:start + a.nbytes].view(a.dtype).reshape(a.shape)
+    out[...] = a
+    return out
+
+
+def test_numpy_inputs_compile_one_kernel_whatever_their_alignment():
+    """Dr.Jit maps numpy memory as it is and compiles a kernel reading an unaligned array with
+    other loads (another kernel): from_numpy hands it aligned memory, so the same code over an
+    aligned and a misaligned array is one kernel."""
+    m = be.module("llvm")
+    x = np.arange(1000, dtype=np.float32)
+    kernels = []
+    for a in (be.aligned(x), _misaligned(x)):
+        kernels.append(_launched(lambda a=a: dr.eval(be.from_numpy(m.Float, a) * 3 + 1)))
+    assert kernels[0] == kernels[1]
+    assert int(be.from_numpy(m.Float, _misaligned(x))[999]) == 999
+
+
+@pytest.mark.parametrize("mode", layerbvh.MODES)
+def test_a_second_tree_compiles_no_new_kernel(mode):
+    """Two meshes whose trees differ in depth, treelet count and size: tracing the second, in the
+    same mode with the same options, launches only kernels the first compiled (per-tree numbers
+    are kernel parameters; local stacks are rounded up to a power of two, here 32 slots for both; the two
+    trees take as many steps, so the same kernels run)."""
+    small, large = meshes.procedural_mesh(3000, seed=5), meshes.procedural_mesh(5000, seed=3)
+    bvhs = [layerbvh.build(v, f) for v, f in (small, large)]
+    assert bvhs[0].stats.depth != bvhs[1].stats.depth and bvhs[0].stats.treelets != bvhs[1].stats.treelets
+    seen = []
+    for (v, _), bvh in zip((small, large), bvhs):
+        o, d = meshes.incoherent_rays(v, 4000, seed=1)
+        seen.append(_launched(lambda: bvh.trace(o, d, mode=mode, stats=True)))
+    assert seen[1] <= seen[0], f"{len(seen[1] - seen[0])} kernels compiled again for the second tree"
+
+
+@pytest.mark.parametrize("mode", layerbvh.MODES)
+def test_lazy_rays_are_computed_in_one_kernel(mode):
+    """A renderer hands the traversal rays it has not evaluated (its shading): they are computed
+    once, in one kernel, not once per column the traversal gathers (each a kernel to compile)."""
+    v, f = meshes.procedural_mesh(3000, seed=5)
+    bvh = layerbvh.build(v, f)
+    o, d = meshes.incoherent_rays(v, 4000, seed=2)
+    m = be.module("llvm")
+    cols = [be.from_numpy(m.Float, np.ascontiguousarray(a[:, c])) for a in (o, d) for c in range(3)]
+    dr.eval(cols)
+    evaluated = _launched(lambda: bvh.trace(m.Array3f(*cols[:3]), m.Array3f(*cols[3:]), mode=mode, stats=False))
+    lazy_o = m.Array3f(*(c * 1.0001 - 0.0001 * c for c in cols[:3]))  # lazy, and the same rays up to rounding
+    lazy_d = m.Array3f(*(-(-c) for c in cols[3:]))
+    lazy = _launched(lambda: bvh.trace(lazy_o, lazy_d, mode=mode, stats=False))
+    assert len(lazy - evaluated) <= 1, f"{len(lazy - evaluated)} kernels more for lazy rays (one computes them)"
