@@ -91,7 +91,7 @@ MUTATIONS = (
     Mutation("finished_rays_not_sorted_last", "the sort key of a finished ray is its last treelet, not 'after every "
              "treelet' (the next step keeps finished rays and loses active ones)",
              "layerbvh/wavefront.py",
-             "keys = out.treelet = dr.select(done, m.UInt32(finished), out.treelet)",
+             "keys = out.treelet = dr.select(done, finished_key, out.treelet)",
              "keys = out.treelet = m.UInt32(out.treelet)",
              (MB + "test_same_seed_matches_stock[cbox-layer_sorted]",
               "tests/engine/test_engine_hits.py::test_modes_agree_exactly[incoherent-bunny]")),
