@@ -22,6 +22,7 @@ ROWS = [("counted", "cbox", "per_ray"), ("counted", "cbox", "layer_sorted"),
 
 CHILD = r"""
 import json, sys, drjit as dr
+from layerbvh_mitsuba.runtime.compile_clock import compile_seconds
 def compiled(h):
     h = [k for k in h if k.get("hash")]
     return h, [k for k in h if not k.get("cache_hit")]
@@ -39,7 +40,7 @@ if kind == "counted":
     mi.render(scene, integrator=integ, spp=4)
     h, c = compiled(dr.kernel_history())
     out = {"launches": len(h), "distinct": len({k["hash"] for k in h}), "compiled": len(c),
-           "compile_s": sum(k["backend_time"] + k["codegen_time"] for k in c) / 1e3}
+           "compile_s": compile_seconds(c)}
 else:
     from layerbvh_mitsuba.tools.stability import cases as sc
     seen = set()
@@ -49,7 +50,7 @@ else:
         h, c = compiled(dr.kernel_history())
         new = [k for k in c if k["hash"] not in seen]
         seen |= {k["hash"] for k in h}
-        out[name] = {"new_kernels": len(new), "compile_s": sum(k["backend_time"] + k["codegen_time"] for k in new) / 1e3}
+        out[name] = {"new_kernels": len(new), "compile_s": compile_seconds(new)}
 print(json.dumps(out))
 """
 
