@@ -98,6 +98,22 @@ def procedural_mesh(target_triangles: int, seed: int = 0, tris_per_sphere: int =
     return sphere_soup(math.ceil(target_triangles / per), tris_per_sphere, seed)
 
 
+def turned_slivers(cols: int = 1000, n: int = 3000, seed: int = 0):
+    """A flat strip of 2 x `cols` slivers (1e-3 x 1000, aspect 1e6) turned at random, and `n` rays
+    aimed inside it from either side: every box overlaps the others, so each ray walks most of the
+    tree (hundreds of wavefront steps). Returns float32 (vertices, faces, origins, directions)."""
+    rng = np.random.default_rng(seed)
+    bottom = np.stack([np.arange(cols + 1) * 1e-3, np.zeros(cols + 1), np.zeros(cols + 1)], 1)
+    v = np.concatenate([bottom, bottom + [0.0, 1000.0, 0.0]])
+    i = np.arange(cols)
+    f = np.concatenate([np.stack([i, i + 1, cols + 1 + i], 1), np.stack([i + 1, cols + 2 + i, cols + 1 + i], 1)])
+    turn, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    v = (v - [cols * 1e-3 / 2, 500.0, 0.0]) @ turn.T
+    target = np.stack([rng.uniform(-0.49, 0.49, n) * cols * 1e-3, rng.uniform(-0.49, 0.49, n) * 1e3, np.zeros(n)], 1) @ turn.T
+    o = target + turn[:, 2] * rng.uniform(1, 100, (n, 1)) * np.where(rng.random((n, 1)) < 0.5, 1.0, -1.0)
+    return v.astype(np.float32), f, o.astype(np.float32), (target - o).astype(np.float32)
+
+
 # -- rays -------------------------------------------------------------------------------------------
 
 

@@ -20,12 +20,21 @@ TAIL_RAYS = 2048
 # ... and so does it once this share of a batch is left: the first steps, with many rays per
 # treelet, are where sorting pays (PERFORMANCE.md entry 20).
 TAIL_FRACTION = 0.25
+# ... and so does it after this many steps, however many rays are left. Each step costs ~15 ms of
+# host time (tracing the step kernel in Python, then a sync) whatever its size; a batch of typical
+# rays takes 4-8 steps (1M incoherent rays on the bunny and on 600k triangles), but a tree whose
+# boxes all overlap (long thin triangles turned at random: the stability suite's slivers) took
+# ~430 steps per batch, seconds of host time for 10,000 rays. A step cap bounds that.
+TAIL_STEPS = 32
 
 
 def takes_tail(n_active: int, n0: int, steps: int, tail_rays: int, tail_fraction: float) -> bool:
     """Whether the rays still active after `steps` wavefront steps (of n0) are finished by one
-    per-ray kernel (the tail) instead of more steps: the rule `trace` runs and the locality replay follows."""
-    return steps > 0 and n_active <= max(tail_rays, int(tail_fraction * n0))
+    per-ray kernel (the tail) instead of more steps: the rule `trace` runs and the locality replay
+    follows. tail_rays = 0 and tail_fraction = 0 turn the tail off, the step cap with it."""
+    if steps == 0 or (tail_rays == 0 and tail_fraction == 0):
+        return False
+    return n_active <= max(tail_rays, int(tail_fraction * n0)) or steps >= TAIL_STEPS
 
 
 def stack_rows(lay: DeviceLayout) -> int:

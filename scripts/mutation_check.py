@@ -235,6 +235,12 @@ MUTATIONS = (
              "return max(LOCAL_ROWS_MIN, 1 << (rows - 1).bit_length())",
              "return rows",
              ("tests/engine/test_engine_kernels.py::test_a_second_tree_compiles_no_new_kernel[per_ray]",)),
+    Mutation("step_cap_ignored", "a batch takes wavefront steps until its rays finish however many that is "
+             "(the tail's step cap is never applied)",
+             "layerbvh/wavefront.py",
+             " or steps >= TAIL_STEPS\n",
+             "\n",
+             ("tests/engine/test_engine_hits.py::test_the_step_cap_hands_a_long_batch_to_the_tail",)),
 )
 
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import layerbvh
+from layerbvh import meshes
 
 from engine_helpers import rays, report
 
@@ -28,3 +29,20 @@ def test_modes_agree_exactly(request, mesh_name, kind):
         # Same traversal order, so the same work: a check of the statistics, not only the hits.
         assert h.stats.inner_nodes == ref.stats.inner_nodes
         assert h.stats.triangles == ref.stats.triangles
+
+
+def test_the_step_cap_hands_a_long_batch_to_the_tail():
+    """Rays that need hundreds of steps (turned slivers) are finished by the per-ray tail after
+    wavefront.TAIL_STEPS steps, with the same hits and work; with the tail off they are not."""
+    from layerbvh.wavefront import TAIL_STEPS
+    v, f, o, d = meshes.turned_slivers()
+    capped, uncapped = (layerbvh.build(v, f, tail_rays=t, tail_fraction=0.25 if t else 0.0) for t in (2048, 0))
+    ref = capped.trace(o, d, mode="per_ray")
+    assert np.mean(ref.prim != layerbvh.MISS) > 0.99  # (aimed inside the strip: every ray hits)
+    long = uncapped.trace(o, d, mode="layer_sorted")
+    assert long.stats.steps > 4 * TAIL_STEPS and long.stats.tail_rays == 0
+    h = capped.trace(o, d, mode="layer_sorted")
+    assert h.stats.steps == TAIL_STEPS + 1 and h.stats.tail_rays > 0.5 * len(o)
+    for got in (long, h):
+        assert (got.prim == ref.prim).all() and (got.t == ref.t).all() and (got.u == ref.u).all()
+        assert got.stats.inner_nodes == ref.stats.inner_nodes and got.stats.triangles == ref.stats.triangles
