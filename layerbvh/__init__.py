@@ -5,7 +5,7 @@ from .inputs import DEFAULT_BRANCHING, DEFAULT_LEAF_SIZE, default_leaf_size, DEF
 from .bvh import BATCH_RAYS, TRACE_MODES, Hits, LayerBVH, Occlusion, build, build_instanced
 from .instances import Group, Instance
 from .layout import BRANCHINGS, LayerLayout, check_layout
-from .locality import LocalityRow, LocalitySettings, RaySet, headline_config, measure, preset_verdict, replay
+from .locality import LocalityRow, LocalitySettings, RaySet, at_headline, headline_config, measure, preset_verdict, replay
 from .memmodel import PRESETS, CacheLevel, Preset, preset
 from . import meshes  # noqa: F401  (the engine's test and benchmark inputs, numpy only)
 from .sah import MAX_DEPTH
@@ -18,6 +18,6 @@ __all__ = ["AUTO", "AutoPolicy", "choice_key", "BATCH_RAYS", "TRACE_MODES", "bui
            "DEFAULT_TREELET_HEIGHT", "DEFAULT_LEAF_SIZE", "DEFAULT_BRANCHING", "BRANCHINGS", "default_leaf_size",
            "MAX_DEPTH", "cpu_model", "from_numpy", "llvm_vector_width", "set_llvm_vector_width",
            # the locality model
-           "LocalityRow", "LocalitySettings", "RaySet", "headline_config", "measure", "preset_verdict", "replay",
+           "LocalityRow", "LocalitySettings", "RaySet", "at_headline", "headline_config", "measure", "preset_verdict", "replay",
            "PRESETS", "CacheLevel", "Preset", "preset"]
 __version__ = "0.1.0"

@@ -10,13 +10,14 @@ import numpy as np
 
 from . import memtrace as mt
 from .bvh import build
-from .inputs import DEFAULT_TREELET_HEIGHT
-from .layout import LayerLayout
+from .inputs import DEFAULT_BRANCHING, DEFAULT_TREELET_HEIGHT
+from .layout import LayerLayout, node_format, treelet_levels
 from .memmodel import Caches, Preset, preset as named_preset, with_segment
 from .state import MISS, STATE_RECORD_BYTES
 from .steptraffic import limits, sort_traffic
 from .tracecheck import TraceCheck, check_trace, same_as
-from .wavefront import MODES, TAIL_FRACTION, TAIL_RAYS, takes_tail
+from .walk import SORT_NETWORKS
+from .wavefront import MODES, TAIL_FRACTION, TAIL_RAYS, stack_rows, takes_tail
 
 RAY_RECORD_BYTES = 32       # state.RayRecords: one 32-byte record per ray (the layer modes)
 PER_RAY_LOADS = 7           # per_ray reads o, d (six arrays) and tmax by slot: 4 bytes each
@@ -70,9 +71,6 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     with `warp` lanes per warp (packet) on `preset`'s units and caches."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
-    if lay.branching != 2:
-        raise ValueError(f"the locality replay models the binary Layer BVH (branching 2), "
-                         f"not branching {lay.branching}")
     t0 = time.perf_counter()
     o = np.ascontiguousarray(o, np.float32)
     d = np.ascontiguousarray(d, np.float32)
@@ -86,8 +84,9 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     ist = np.zeros((n_all, mt.I_COLS), np.int64)
     mt.setup_rays(o, d, fst, ist, tmax)
     layer = mode != "per_ray"
-    cap_g = max(1, lay.depth)
-    cap_local = max(1, min(lay.height, lay.depth)) if layer else cap_g
+    # Entry stacks as wavefront.trace sizes them: a node pushes at most branching - 1 entries.
+    cap_g = stack_rows(lay)
+    cap_local = max(1, (lay.branching - 1) * min(treelet_levels(lay.height, lay.branching), lay.depth)) if layer else cap_g
     cap_max = max(cap_local, cap_g)
     lanes_held = mt.local_stack_rows(preset.units, preset.resident_warps, warp)
     loc_link = np.zeros((lanes_held, cap_max + 1), np.int64)
@@ -117,9 +116,12 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
             (mt.S_TRI, "tris", 64, False), (mt.S_LOC_R_LINK, "local_link", 4, True),
             (mt.S_LOC_R_T, "local_t", 4, True), (mt.S_STACK_LINK, "stack_link", 4, False),
             (mt.S_STACK_T, "stack_t", 4, False), (mt.S_NODE_TRELET, "node_treelet", 4, False),
-            (mt.S_TF, "treelet_first", 4, False), (mt.S_NODE, "nodes", 64, False),
+            (mt.S_TF, "treelet_first", 4, False), (mt.S_NODE, "nodes", node_format(lay.branching).bytes, False),
             (mt.S_LOC_W_LINK, "local_link", 4, True), (mt.S_LOC_W_T, "local_t", 4, True)):
         site_base[site], site_bytes[site], site_local[site] = base[region], nbytes, local
+    for j in range(1, mt.MAX_PUSH):  # a wide node's further pushes (local, like the first)
+        for site, region in zip((mt.S_PUSH + 2 * (j - 1), mt.S_PUSH + 2 * (j - 1) + 1), ("local_link", "local_t")):
+            site_base[site], site_bytes[site], site_local[site] = base[region], 4, True
     for k, (region, nbytes, _) in enumerate(start):
         site_base[mt.S_START + k], site_bytes[mt.S_START + k] = base[region], nbytes
     start_sites = np.arange(len(start), dtype=np.int64)
@@ -138,12 +140,13 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     state = (fst, ist, loc_link, loc_t, g_link, g_t)
     sites = (site_base, site_bytes, site_local, start_sites, start_by, prev_pos, preset.segment_bytes)
     model = (tags, stamps, params, counts, clock, tally, levels_hit, lanes, loads)
+    net = np.array(SORT_NETWORKS.get(lay.branching, ()), np.int64).reshape(-1, 2)
 
     def launch(rays, bounded, use_global, cap):
         if preset.flush_private_each_kernel:
             caches.flush_private()
         mt.run_kernel(rays, warp, preset.units, preset.resident_warps, preset.block_warps, bounded, use_global, cap,
-                      any_hit, cap_g, *views, *state, *sites, *model)
+                      any_hit, cap_g, lay.branching, net, *views, *state, *sites, *model)
 
     kernels, sort_bytes, ray_steps = 0, 0, 0
     if n and not layer:
@@ -318,6 +321,7 @@ class LocalitySettings:
     check: bool = True              # compare each mode's trace with the kernel (once per kind, height)
     threads: int | None = None      # replays run at once (numba releases the GIL); None: the CPU count
     segments: tuple | None = None   # transaction sizes in bytes (memmodel.with_segment); None: each preset's own
+    branching: int = DEFAULT_BRANCHING  # children per node of the tree replayed (a render's default)
 
 
 def _ratio(a: float, b: float) -> float:
@@ -329,14 +333,15 @@ def verdict(rows: list[LocalityRow]) -> list[str]:
     node and triangle traffic (the paper's claim), to all of its kernels' DRAM traffic, and to the
     memory bus once the steps' own traffic is paid."""
     out = []
-    for (kind, pre, warp, h), g in _groups(rows, lambda r: (r.kind, r.preset, r.warp, r.treelet_height)).items():
+    for (kind, pre, warp, h, k), g in _groups(rows, lambda r: (r.kind, r.preset, r.warp, r.treelet_height,
+                                                                r.branching)).items():
         if "per_ray" not in g or "layer_sorted" not in g:
             continue
         p, s = g["per_ray"], g["layer_sorted"]
         nt = _ratio(s.node_dram_bytes_per_ray + s.triangle_dram_bytes_per_ray,
                     p.node_dram_bytes_per_ray + p.triangle_dram_bytes_per_ray)
         out.append(
-            f"{kind}, {pre}, W={warp}, H={h}: sorted steps issue {_ratio(s.node_transactions_per_ray, p.node_transactions_per_ray):.2f}x "
+            f"{kind}, {pre}, W={warp}, H={h}, K={k}: sorted steps issue {_ratio(s.node_transactions_per_ray, p.node_transactions_per_ray):.2f}x "
             f"per_ray's node transactions (SIMD efficiency {s.simd_efficiency:.2f} vs {p.simd_efficiency:.2f}) and read "
             f"{nt:.2f}x its node and triangle bytes from DRAM; all kernel reads {_ratio(s.dram_bytes_per_ray, p.dram_bytes_per_ray):.2f}x, "
             f"with the {s.sort_bytes_per_ray:.0f} B/ray moved between steps "
@@ -350,10 +355,18 @@ def verdict(rows: list[LocalityRow]) -> list[str]:
 
 
 def headline_config(rows: list[LocalityRow]) -> tuple:
-    """(warp, treelet height) a preset's one-sentence verdict and tables use: its first warp width
-    in `rows`, and the default treelet height if it was measured, else the first."""
-    heights = [r.treelet_height for r in rows]
-    return rows[0].warp, DEFAULT_TREELET_HEIGHT if DEFAULT_TREELET_HEIGHT in heights else heights[0]
+    """(warp, treelet height, branching) a preset's one-sentence verdict and tables use: its first
+    warp width in `rows`, and the default treelet height and branching if they were measured, else
+    the first."""
+    heights, ks = [r.treelet_height for r in rows], [r.branching for r in rows]
+    return (rows[0].warp, DEFAULT_TREELET_HEIGHT if DEFAULT_TREELET_HEIGHT in heights else heights[0],
+            DEFAULT_BRANCHING if DEFAULT_BRANCHING in ks else ks[0])
+
+
+def at_headline(rows: list[LocalityRow]) -> list[LocalityRow]:
+    """The rows of headline_config (one preset's rows)."""
+    warp, h, k = headline_config(rows)
+    return [r for r in rows if (r.warp, r.treelet_height, r.branching) == (warp, h, k)]
 
 
 def preset_verdict(rows: list[LocalityRow]) -> dict:
@@ -362,8 +375,8 @@ def preset_verdict(rows: list[LocalityRow]) -> dict:
     out = {}
     for pre in dict.fromkeys(r.preset for r in rows):
         mine = [r for r in rows if r.preset == pre]
-        warp, h = headline_config(mine)
-        kinds = _groups([r for r in mine if r.warp == warp and r.treelet_height == h], lambda r: r.kind)
+        warp, h, k = headline_config(mine)
+        kinds = _groups(at_headline(mine), lambda r: r.kind)
         nt, tot = {}, {}
         for kind, g in kinds.items():
             if "per_ray" in g and "layer_sorted" in g:
@@ -379,7 +392,7 @@ def preset_verdict(rows: list[LocalityRow]) -> dict:
             lo, hi = min(d.values()), max(d.values())
             return f"{lo:.2f}x" if f"{lo:.2f}" == f"{hi:.2f}" else f"{lo:.2f}-{hi:.2f}x"
         out[pre] = (
-            f"{pre} (W={warp}, H={h}): sorting "
+            f"{pre} (W={warp}, H={h}, K={k}): sorting "
             + (f"cuts the node and triangle bytes read from DRAM on {', '.join(f'{k} ({nt[k]:.2f}x)' for k in gain)}"
                if gain else f"does not cut the node and triangle bytes read from DRAM ({span(nt)} of per_ray's)")
             + f"; counting the ray state, entry stacks and the traffic between steps, the sorted path moves "
@@ -423,7 +436,7 @@ class LocalityRun:
                 "verdict": verdict(self.rows), "preset_verdict": preset_verdict(self.rows), "seconds": self.seconds}
 
 
-def measure(vertices, faces, ray_sets: list[RaySet], settings: LocalitySettings, leaf_size: int,
+def measure(vertices, faces, ray_sets: list[RaySet], settings: LocalitySettings, leaf_size: int | None,
             backend: str = "llvm", progress=None) -> LocalityRun:
     """Every kind x treelet height x mode x warp x preset of `settings`, each replayed once; each
     mode's trace checked against the kernel once per kind and height (settings.check).
@@ -440,7 +453,8 @@ def measure(vertices, faces, ray_sets: list[RaySet], settings: LocalitySettings,
     rows, checks, bvh_stats, done = [], [], {}, 0
     for h in settings.treelet_heights:
         most = max([len(s[1]) for s in sets] + [1])
-        bvh = build(vertices, faces, treelet_height=h, leaf_size=leaf_size, backend=backend, batch_rays=most, branching=2)
+        bvh = build(vertices, faces, treelet_height=h, leaf_size=leaf_size, backend=backend, batch_rays=most,
+                    branching=settings.branching)
         bvh_stats[h] = asdict(bvh.stats)
         for rs, o, d, tmax, before in sets:
             configs = [(mode, pre, warp) for mode in settings.modes for pre, warp in widths]

@@ -16,7 +16,10 @@ from __future__ import annotations
 # treelet (bounded steps), an exit's treelet root, a node record, and it writes its local stack
 # (every iteration: walk keeps local accesses outside branches, a lane that pushes nothing writes
 # the spare slot). At a warp's first iteration each lane also loads its ray (and, in a wavefront
-# step, its state). Instanced layouts are not replayed: the locality tools flatten instances.
+# step, its state). A wide node (branching 4 or 8) is one record load of its format's size; a
+# lane that pushes writes its K - 1 push slots (the kernel's push is a branch: on a GPU, lanes
+# that push nothing are predicated off). Instanced layouts are not replayed: the locality tools
+# flatten instances.
 
 # numba's on-disk cache checks only the file a function is in: run_kernel compiles memmodel's
 # cache_access and coalesce into itself, so after editing memmodel.py touch this file (or remove
@@ -25,8 +28,8 @@ import numba
 import numpy as np
 
 from .geometry import EDGE_ERR, FAR_SCALE, MIN_RCP_INPUT
-from .layout import (EXIT_BIT, LEAF_BIT, LEAF_COUNT_SHIFT, LEAF_FIRST_MASK, NODE_BOX_HI, NODE_BOX_LO, NODE_FLOATS,
-                     NODE_LINK, PAYLOAD_MASK, POP, TRI_FACE, TRI_FLOATS, TRI_NORMAL, TRI_VERTEX, LayerLayout)
+from .layout import (BRANCHINGS, EXIT_BIT, LEAF_BIT, LEAF_COUNT_SHIFT, LEAF_FIRST_MASK, NODE_BOX_HI, NODE_BOX_LO,
+                     NODE_LINK, PAYLOAD_MASK, POP, TRI_FACE, TRI_FLOATS, TRI_NORMAL, TRI_VERTEX, LayerLayout, node_format)
 from .memmodel import cache_access, coalesce
 
 # -- constants as plain ints/float32 (numba folds them; numpy uint32 would promote to float) ------
@@ -39,6 +42,7 @@ _LO0, _LO1, _HI0, _HI1 = NODE_BOX_LO[0], NODE_BOX_LO[1], NODE_BOX_HI[0], NODE_BO
 _LK0, _LK1 = NODE_LINK
 _V0, _V1, _V2 = TRI_VERTEX
 _NRM = TRI_NORMAL // 2                  # first float64 slot of the stored normal
+_FLT_MAX = np.float32(3.4028234663852886e38)  # walk's clamp of a hit child's entry distance
 
 # -- per-ray state: columns of the float32 and int64 state tables -----------------------------------
 F_O, F_D, F_INV, F_SX, F_SY, F_SZ, F_T, F_U, F_V = 0, 3, 6, 9, 10, 11, 12, 13, 14
@@ -49,13 +53,18 @@ I_COLS = 20
 
 # -- load sites (one load instruction each) ----------------------------------------------------------
 S_TRI, S_LOC_R_LINK, S_LOC_R_T, S_STACK_LINK, S_STACK_T, S_NODE_TRELET, S_TF, S_NODE, S_LOC_W_LINK, S_LOC_W_T = range(10)
-S_START = 10         # first of the per-kernel ray/state loads (StartLoads)
-SITES = 20
+# A wide node's push j (j = 0 on top) writes two local slot sites: j = 0 the two above (the binary
+# push's), j >= 1 a pair from S_PUSH on (link, then entry distance).
+MAX_PUSH = max(BRANCHINGS) - 1
+S_PUSH = 10
+S_START = S_PUSH + 2 * (MAX_PUSH - 1)  # first of the per-kernel ray/state loads (StartLoads)
+SITES = S_START + 10
 SITE_NAMES = ("triangle", "local_read_link", "local_read_t", "stack_link", "stack_t", "node_treelet",
-              "treelet_root", "node", "local_write_link", "local_write_t")
+              "treelet_root", "node", "local_write_link", "local_write_t") + tuple(
+                  f"local_write_{w}_{j}" for j in range(1, MAX_PUSH) for w in ("link", "t"))
 # What each site is, for the per-kind breakdown of transactions and traffic.
 CATEGORY = {"node": (S_NODE, S_NODE_TRELET, S_TF), "triangle": (S_TRI,), "stack": (S_STACK_LINK, S_STACK_T),
-            "local": (S_LOC_R_LINK, S_LOC_R_T, S_LOC_W_LINK, S_LOC_W_T)}
+            "local": (S_LOC_R_LINK, S_LOC_R_T, S_LOC_W_LINK, S_LOC_W_T) + tuple(range(S_PUSH, S_START))}
 # ... and the start sites are "ray".
 # The kernel's loads by kind: the replay's load sites of each, and the work counter the kernel
 # keeps of it (state.WORK); besides these, each kernel a ray takes part in ("steps") loads its ray
@@ -180,13 +189,43 @@ def _slab(rec, lo, hi, fst, s):
     return tn, tf
 
 
+@numba.njit(cache=True, inline="always")
+def _wide_node(rec, rec_u, k, net, fst, s, keys, links):
+    """walk._wide_node for ray s: every child's slab test (hit_children_wide: the exit distance
+    starts from t_best), entry distances clamped below FLT_MAX (misses inf), sorted with the
+    network; keys/links[0] is the nearest. Returns (entries to push, link to go on with)."""
+    t_best = fst[s, F_T]
+    n_hit = 0
+    for c in range(k):
+        tn, tf = np.float32(0.0), t_best
+        for a in range(3):
+            o, inv = fst[s, F_O + a], fst[s, F_INV + a]
+            t0 = (rec[a * k + c] - o) * inv
+            t1 = (rec[(3 + a) * k + c] - o) * inv
+            tn = max(tn, min(t0, t1))
+            tf = min(tf, max(t0, t1))
+        links[c] = np.int64(rec_u[6 * k + c])
+        if tn <= tf * _FAR:
+            keys[c] = min(tn, _FLT_MAX)
+            n_hit += 1
+        else:
+            keys[c] = np.float32(np.inf)
+    for p in range(net.shape[0]):
+        a, b = net[p, 0], net[p, 1]
+        if keys[b] < keys[a]:
+            keys[a], keys[b] = keys[b], keys[a]
+            links[a], links[b] = links[b], links[a]
+    return (n_hit - 1 if n_hit > 1 else 0), (links[0] if n_hit > 0 else np.int64(_POP))
+
+
 @numba.njit(cache=True)
 def iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, tris_f, tris_u, tris_d, treelet_first,
-            node_treelet, fst, ist, loc_link, loc_t, g_link, g_t, req):
+            node_treelet, fst, ist, loc_link, loc_t, g_link, g_t, req, branching, net, wkeys, wlinks):
     """One iteration of walk.walk's loop for the ray in slot s (active on entry), whose local entry
     stack is row `ls` of loc_link/loc_t (the lane it runs in). Writes the element index each load
     site read (req[site], NO_READ for none) and updates the ray's state. Returns the sites it read
-    as a bit mask (bit k: site k)."""
+    as a bit mask (bit k: site k). A wide tree (`branching` > 2) orders a node's children with the
+    sorting network `net` (walk.SORT_NETWORKS, (pairs, 2)) in the scratch rows wkeys, wlinks."""
     for k in range(S_START):
         req[k] = NO_READ
     used = (1 << S_LOC_R_LINK) | (1 << S_LOC_R_T) | (1 << S_LOC_W_LINK) | (1 << S_LOC_W_T)
@@ -245,10 +284,25 @@ def iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, t
         if tre != ist[s, I_TRELET]:
             ist[s, I_NEXT] = tre
             active = False
-    # -- a node: both children; on with the nearer, push the farther --
+    # -- a node: all children; on with the nearest, push the others (binary: the farther) --
     push = False
     far_link, far_t = np.int64(0), np.float32(0.0)
-    if active and ist[s, I_TRI_CUR] >= ist[s, I_TRI_END] and link != _POP and (link & _LEAF) == 0:
+    n_push = 0
+    if active and ist[s, I_TRI_CUR] >= ist[s, I_TRI_END] and link != _POP and (link & _LEAF) == 0 and branching > 2:
+        payload = link & _PAYLOAD
+        node = payload
+        if (link & _EXIT) != 0:
+            req[S_TF] = payload
+            used |= 1 << S_TF
+            node = treelet_first[payload]
+        req[S_NODE] = node
+        used |= 1 << S_NODE
+        n_push, link = _wide_node(nodes_f[node], nodes_u[node], branching, net, fst, s, wkeys, wlinks)
+        ist[s, I_INNER] += 1
+        if bounded and link != _POP and (link & _LEAF) == 0 and (link & _EXIT) != 0:
+            ist[s, I_NEXT] = link & _PAYLOAD
+            active = False
+    elif active and ist[s, I_TRI_CUR] >= ist[s, I_TRI_END] and link != _POP and (link & _LEAF) == 0:
         payload = link & _PAYLOAD
         node = payload
         if (link & _EXIT) != 0:
@@ -272,14 +326,28 @@ def iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, t
         if bounded and link != _POP and (link & _LEAF) == 0 and (link & _EXIT) != 0:
             ist[s, I_NEXT] = link & _PAYLOAD
             active = False
-    slot = nl if push else cap
-    req[S_LOC_W_LINK] = slot
-    req[S_LOC_W_T] = slot
-    loc_link[ls, slot] = far_link
-    loc_t[ls, slot] = far_t
-    if push:
-        nl += 1
-        ist[s, I_PUSHES] += 1  # (a layer step writes each push to its push buffer at once)
+    if branching > 2:
+        if n_push > 0:  # (walk: push j goes to slot nl + n_push - 1 - j, the nearest on top)
+            for j in range(branching - 1):
+                slot = nl + n_push - (j + 1) if j < n_push else cap
+                site_link = S_LOC_W_LINK if j == 0 else S_PUSH + 2 * (j - 1)
+                site_t = S_LOC_W_T if j == 0 else S_PUSH + 2 * (j - 1) + 1
+                req[site_link] = slot
+                req[site_t] = slot
+                used |= (1 << site_link) | (1 << site_t)
+                loc_link[ls, slot] = wlinks[j + 1]
+                loc_t[ls, slot] = wkeys[j + 1]
+            nl += n_push
+            ist[s, I_PUSHES] += n_push
+    else:
+        slot = nl if push else cap
+        req[S_LOC_W_LINK] = slot
+        req[S_LOC_W_T] = slot
+        loc_link[ls, slot] = far_link
+        loc_t[ls, slot] = far_t
+        if push:
+            nl += 1
+            ist[s, I_PUSHES] += 1  # (a layer step writes each push to its push buffer at once)
     # -- a leaf: its triangles from the next iteration on --
     if active and link != _POP and (link & _LEAF) != 0:
         ist[s, I_TRI_CUR] = link & _FIRST
@@ -337,7 +405,7 @@ def _start_index(by, s, lane, prev_pos):
 
 
 @numba.njit(cache=True, nogil=True)
-def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap, any_hit, cap_g,
+def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap, any_hit, cap_g, branching, net,
                nodes_f, nodes_u, tris_f, tris_u, tris_d, treelet_first, node_treelet,
                fst, ist, loc_link, loc_t, g_link, g_t,
                site_base, site_bytes, site_local, start_sites, start_by_pos, prev_pos, seg_bytes,
@@ -371,7 +439,9 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
     lane = np.empty(W, np.int64)
     every = np.ones(W, np.bool_)
     addr = np.empty(W, np.int64)
-    segs = np.empty(W * 8, np.int64)
+    segs = np.empty(W * (max(site_bytes.max() // seg_bytes, 6) + 2), np.int64)  # (coalesce's bound)
+    wkeys = np.empty(MAX_PUSH + 1, np.float32)
+    wlinks = np.empty(MAX_PUSH + 1, np.int64)
     n_levels = levels_hit.shape[1] - 1
     n_start = len(start_sites)
     remaining = n_warps
@@ -409,7 +479,8 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
                             req[j, S_START + k] = _start_index(start_by_pos[k], s, lo + j, prev_pos)
                             used |= 1 << (S_START + k)
                     used |= iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, tris_f, tris_u,
-                                    tris_d, treelet_first, node_treelet, fst, ist, loc_link, loc_t, g_link, g_t, req[j])
+                                    tris_d, treelet_first, node_treelet, fst, ist, loc_link, loc_t, g_link, g_t, req[j],
+                                    branching, net, wkeys, wlinks)
                     if ist[s, I_ACTIVE] != 0:
                         going += 1
                     else:
@@ -471,7 +542,7 @@ def next_treelets(order, ist, finished):
 def layout_views(lay: LayerLayout):
     """The layout's records as the replay reads them: node float32/uint32 rows, triangle
     float32/uint32/float64 rows, treelet roots, node treelets."""
-    nodes = lay.nodes.reshape(-1, NODE_FLOATS)
+    nodes = lay.nodes.reshape(-1, node_format(lay.branching).floats)
     tris = np.ascontiguousarray(lay.tris.reshape(-1, TRI_FLOATS))
     return (nodes, nodes.view(np.uint32), tris, tris.view(np.uint32), tris.view(np.float64),
             lay.treelet_first.astype(np.int64), lay.node_treelet.astype(np.int64))

@@ -47,7 +47,7 @@ def limits(rows: list) -> None:
       Sorting (at least a key read and a permutation written) comes on top for the sorted mode."""
     groups: dict = {}
     for r in rows:
-        groups.setdefault((r.kind, r.preset, r.warp, r.treelet_height), {})[r.mode] = r
+        groups.setdefault((r.kind, r.preset, r.warp, r.treelet_height, r.branching), {})[r.mode] = r
     for g in groups.values():
         p = g.get("per_ray")
         for mode, r in g.items():

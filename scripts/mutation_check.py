@@ -235,6 +235,12 @@ MUTATIONS = (
              "return max(LOCAL_ROWS_MIN, 1 << (rows - 1).bit_length())",
              "return rows",
              ("tests/engine/test_engine_kernels.py::test_a_second_tree_compiles_no_new_kernel[per_ray]",)),
+    Mutation("replay_wide_children_unsorted", "the locality replay takes a wide node's children in their stored "
+             "order (the kernel sorts them by entry distance)",
+             "layerbvh/memtrace.py",
+             "    for p in range(net.shape[0]):\n",
+             "    for p in range(0):\n",
+             ("tests/tools/test_locality.py::test_trace_follows_the_kernel_on_wide_trees[4]",)),
     Mutation("step_cap_ignored", "a batch takes wavefront steps until its rays finish however many that is "
              "(the tail's step cap is never applied)",
              "layerbvh/wavefront.py",

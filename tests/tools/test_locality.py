@@ -51,6 +51,28 @@ def test_trace_follows_the_kernel(request, mesh_name, kind, any_hit):
         assert rep.levels_hit.sum() == rep.tally[:, 0].sum()
 
 
+@pytest.mark.parametrize("branching", [4, 8])
+def test_trace_follows_the_kernel_on_wide_trees(bunny, branching):
+    """The same per-ray check on the wide trees (4 is what a render gets): a node's children
+    sorted by entry distance, K - 1 pushes, records of the wide format; closest and any hit."""
+    v, f = bunny
+    o, d, tmax = _rays(v, "incoherent")
+    bvh = layerbvh.build(v, f, branching=branching, treelet_height=3, batch_rays=len(o), tail_rays=256,
+                         tail_fraction=0.05)
+    short = np.random.default_rng(1).uniform(0.0, 2.0, len(o)).astype(np.float32) * np.ptp(v, 0).max()
+    for any_hit, t in ((False, tmax), (True, short)):
+        for mode in layerbvh.MODES:
+            rep = L.replay(bvh.layout, o, d, t, mode, any_hit, 32, preset("gtx965m"), bvh.tail_rays, bvh.tail_fraction)
+            chk = L.check_trace(bvh, o, d, t, any_hit, rep)
+            assert chk.exact, (f"K={branching} {mode}: {chk.hit_mismatches} hits, {chk.work_mismatches} work counts "
+                               f"and {chk.load_mismatches} loads differ")
+            assert rep.branching == branching and (rep.prim != layerbvh.MISS).mean() > 0.05
+            if mode != "per_ray":
+                assert rep.kernels > 3 and rep.pushed > 0
+                # every push j of a wide node writes its own local sites: the farthest ones too
+                far = mt.S_PUSH + 2 * (branching - 3)
+                assert rep.tally[far, 1] > 0 and rep.tally[far + 2:mt.S_START, 1].sum() == 0
+
 def _two_triangles():
     """Two triangles far apart (x < 0 and x > 0) in the plane z = 0, each its own leaf."""
     v = np.array([[-2, -1, 0], [-1, -1, 0], [-1.5, 1, 0], [1, -1, 0], [2, -1, 0], [1.5, 1, 0]], np.float32)
@@ -161,6 +183,9 @@ def test_locality_command(tmp_path):
     doc = json.loads((out / "locality.json").read_text())
     rows = doc["results"]
     assert len(rows) == 2 * 3 * 2 * 2  # kinds x modes x presets x warps
+    # With no tree options it models the tree a render gets (issue 40): the default branching.
+    assert doc["branching"] == layerbvh.DEFAULT_BRANCHING and {r["branching"] for r in rows} == {doc["branching"]}
+    assert doc["leaf_size"] == layerbvh.default_leaf_size(layerbvh.DEFAULT_BRANCHING)
     need = ("kind", "mode", "warp", "preset", "rays", "inner_per_ray", "tris_per_ray", "transactions_per_ray",
             "simd_efficiency", "l1_hit_rate", "l2_hit_rate", "l2_bytes_per_ray", "dram_bytes_per_ray",
             "sort_bytes_per_ray")

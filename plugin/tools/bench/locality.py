@@ -19,6 +19,7 @@ from layerbvh import (
     LocalitySettings,
     Preset,
     RaySet,
+    at_headline,
     cpu_model,
     headline_config,
     llvm_vector_width,
@@ -53,11 +54,12 @@ class LocalityRequest:
     presets: tuple
     treelet_heights: tuple
     modes: tuple
-    leaf_size: int
+    leaf_size: int | None          # None: the branching's default (inputs.default_leaf_size)
     sample: int | None
     cap: int
     check: bool = True
     segments: tuple | None = None  # None: each preset's own transaction size
+    branching: int = layerbvh.DEFAULT_BRANCHING  # the tree a render of the scene gets, unless asked
 
 
 def parse_list(text: str, what: str, choices=None, kind=str) -> tuple:
@@ -97,8 +99,11 @@ def request_from_args(args) -> LocalityRequest:
         raise ValueError(f"--spp must be >= 1, got {args.spp}")
     return LocalityRequest(scene=args.scene, res=tuple(args.res) if args.res else None, spp=args.spp or DEFAULT_SPP,
                            seed=args.seed, kinds=kinds, warps=warps, presets=presets, treelet_heights=heights,
-                           modes=modes, leaf_size=layerbvh.check_param("leaf_size", args.leaf_size),
-                           sample=args.sample, cap=args.cap, check=not args.no_check, segments=segments)
+                           modes=modes, leaf_size=None if args.leaf_size is None else
+                           layerbvh.check_param("leaf_size", args.leaf_size),
+                           sample=args.sample, cap=args.cap, check=not args.no_check, segments=segments,
+                           branching=layerbvh.check_param("branching", getattr(args, "branching", None) or
+                                                          layerbvh.DEFAULT_BRANCHING))
 
 
 def measure_scene(mi, req: LocalityRequest, progress: bool = True) -> dict:
@@ -121,7 +126,7 @@ def measure_scene(mi, req: LocalityRequest, progress: bool = True) -> dict:
                          f"{res[0]}x{res[1]}, {req.spp} spp")
     settings = LocalitySettings(modes=req.modes, warps=req.warps, presets=req.presets,
                                 treelet_heights=req.treelet_heights, sample=req.sample, seed=req.seed, check=req.check,
-                                segments=req.segments)
+                                segments=req.segments, branching=req.branching)
     per_preset = sum(len(req.warps or (named_preset(p).warp,)) for p in req.presets) * len(req.segments or (None,))
     total = per_preset * len(req.modes) * len(req.treelet_heights) * len(sets)
     with tqdm(total=total, desc="locality", unit="replay", disable=not progress, file=sys.stderr) as bar:
@@ -132,7 +137,8 @@ def measure_scene(mi, req: LocalityRequest, progress: bool = True) -> dict:
     doc = run.as_dict()
     doc.update({
         "scene": str(req.scene), "resolution": list(res), "spp": req.spp, "seed": req.seed,
-        "triangles": int(len(f)), "leaf_size": req.leaf_size, "record_s": record_s,
+        "triangles": int(len(f)), "branching": req.branching,
+        "leaf_size": layerbvh.default_leaf_size(req.branching) if req.leaf_size is None else req.leaf_size, "record_s": record_s,
         "kinds": {k: {"recorded": int(len(rays[k][0])), "traced": meta["kinds"][k]["traced"]} for k in req.kinds if k in rays},
         "kinds_missing": missing, "sampled": req.sample,
         "presets": {r.preset: r.preset_params for r in run.rows},
@@ -161,8 +167,8 @@ def headline(doc: dict) -> dict:
     preset at its first warp width and the first treelet height."""
     rows = doc["results"]
     first = rows[0]
-    sel = {r["mode"]: r for r in rows if (r["preset"], r["warp"], r["treelet_height"]) ==
-           (first["preset"], first["warp"], first["treelet_height"])}
+    config = ("preset", "warp", "treelet_height", "branching")
+    sel = {r["mode"]: r for r in rows if tuple(r.get(c) for c in config) == tuple(first.get(c) for c in config)}
     p, s = sel.get("per_ray"), sel.get("layer_sorted")
     return {"rays": first["kind"], "preset": first["preset"], "warp": first["warp"],
             "per_ray_transactions": p and p["transactions_per_ray"], "sorted_transactions": s and s["transactions_per_ray"],
@@ -236,16 +242,15 @@ def benchmarks_section(doc: dict, fig_rel: str) -> str:
         parts += [f"- {v}" for v in preset_verdict(rows).values()] + [""]
         for pre in dict.fromkeys(r.preset for r in rows):
             mine = [r for r in rows if r.preset == pre]
-            warp, h = headline_config(mine)
-            parts += [f"{pre}, W={warp}, H={h}:", "",
-                      table_compact([r for r in mine if r.warp == warp and r.treelet_height == h])]
+            warp, h, k = headline_config(mine)
+            parts += [f"{pre}, W={warp}, H={h}, K={k}:", "", table_compact(at_headline(mine))]
         parts += [f"![DRAM bytes per ray]({fig_rel}/locality_{_slug(scene)}.png)", ""]
     return "\n".join(parts)
 
 
 def merge_documents(docs: list) -> dict:
     """Several locality.json documents (single runs, or sweeps' merged ones) as one merged document,
-    a row kept once per (scene, kind, mode, warp, preset, treelet height): the first document's wins."""
+    a row kept once per (scene, kind, mode, warp, preset, treelet height, branching): the first document's wins."""
     merged = {"command": " ; ".join(d["command"] for d in docs), "results": [], "checks": [], "verdict": [],
               "presets": {}, "preset_lines": [], "scenes": {}, "machine": docs[0].get("machine")}
     seen = set()
@@ -256,7 +261,8 @@ def merge_documents(docs: list) -> dict:
                  "checks": [{**c, "scene": name} for c in d["checks"]],
                  "scenes": {name: {k: d[k] for k in ("resolution", "spp", "triangles", "kinds", "sampled")}}}
         for r in d["results"]:
-            key = tuple(r[k] for k in ("scene", "kind", "mode", "warp", "preset", "treelet_height"))
+            key = tuple(r.get(k, 2) if k == "branching" else r[k]
+                        for k in ("scene", "kind", "mode", "warp", "preset", "treelet_height", "branching"))
             if key not in seen:
                 seen.add(key)
                 merged["results"].append(r)
@@ -305,6 +311,10 @@ def plot_png(doc: dict) -> bytes:
         for j, k in enumerate(kinds):
             ax = axes[i][j]
             sel = [r for r in rows if r["preset"] == p and r["kind"] == k]
+            # (one tree per plot: the headline branching's rows, a render's tree if it was measured)
+            ks = {r.get("branching", 2) for r in sel}
+            sel = [r for r in sel if r.get("branching", 2) == (layerbvh.DEFAULT_BRANCHING if layerbvh.DEFAULT_BRANCHING in ks
+                                                               else min(ks))]
             bars = sorted({(r["mode"], r["warp"]) for r in sel}, key=lambda mw: (mw[1], layerbvh.MODES.index(mw[0])))
             heights = sorted({r["treelet_height"] for r in sel})
             width = 0.8 / max(len(bars), 1)
@@ -364,7 +374,8 @@ def summary_md(doc: dict, command: str) -> str:
              "; ".join(f"{c['kind']} {c['mode']}: {c['hit_mismatches']} hits, {c['work_mismatches']}, loads "
              f"{c.get('load_mismatches')}" for c in bad))
     lines = [f"# Locality: {doc['scene']}", "", f"Command: `{command}`", "",
-             f"{doc['triangles']:,} triangles; rays recorded at {doc['resolution'][0]}x{doc['resolution'][1]}, "
+             f"{doc['triangles']:,} triangles in a {doc.get('branching', 2)}-wide BVH (leaves of at most "
+             f"{doc['leaf_size']}); rays recorded at {doc['resolution'][0]}x{doc['resolution'][1]}, "
              f"{doc['spp']} spp: " + ", ".join(f"{k} {v['recorded']:,}" for k, v in doc["kinds"].items())
              + (f" (each sampled to at most {doc['sampled']:,})" if doc["sampled"] else "") + ".",
              f"Trace check: {check}.", "", "Presets:", ""]
@@ -418,7 +429,9 @@ def add_parser(sub) -> None:
     lp.add_argument("--treelet-heights", default=str(layerbvh.DEFAULT_TREELET_HEIGHT),
                     help="comma list of treelet heights (default %(default)s)")
     lp.add_argument("--modes", default=",".join(layerbvh.MODES), help="comma list of modes (default %(default)s)")
-    lp.add_argument("--leaf-size", type=int, default=layerbvh.DEFAULT_LEAF_SIZE)
+    lp.add_argument("--branching", type=int, default=layerbvh.DEFAULT_BRANCHING, choices=layerbvh.BRANCHINGS,
+                    help="children per BVH node of the tree replayed (default %(default)s, a render's)")
+    lp.add_argument("--leaf-size", type=int, help="triangles per BVH leaf at most (default: 4 binary, 2 wide)")
     lp.add_argument("--sample", type=int, help="replay at most N rays per kind, drawn uniformly (default: all)")
     lp.add_argument("--cap", type=int, default=DEFAULT_CAP, help="rays recorded per kind at most (default %(default)s)")
     lp.add_argument("--no-check", action="store_true", help="skip comparing each mode's trace with the kernel")

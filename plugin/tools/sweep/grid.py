@@ -103,7 +103,7 @@ JOBS = {
     "bench": Job("bench", True, lambda s: f"{s['rays']} rays K={','.join(map(str, s.get('branchings', [2])))} "
                                           f"h={','.join(map(str, s['heights']))}"),
     "third_party": Job("third_party", False, lambda s: s["traversal"]),
-    "locality": Job("locality", False, lambda s: f"{s['rays']} rays h={s['treelet_height']}"),
+    "locality": Job("locality", False, lambda s: f"{s['rays']} rays K={s.get('branching', 2)} h={s['treelet_height']}"),
 }
 CLI_JOBS = ("compare", "converge", "bench", "locality")  # third_party is driven by scripts/third_party.py
 GENERATED_RAYS = ("coherent", "incoherent")  # bench rays generated over the scene's triangles (meshes.py)
@@ -577,7 +577,7 @@ def add_parser(sub) -> None:
                                        "(default auto)")
     s.add_argument("--treelet-heights", help=f"compare, bench: comma list (default "
                                              f"{layerbvh.DEFAULT_TREELET_HEIGHT}; bench 4,8,12)")
-    s.add_argument("--branchings", help=f"compare, bench: children per BVH node, comma list of 2, 4, 8 (default "
+    s.add_argument("--branchings", help=f"compare, bench, locality: children per BVH node, comma list of 2, 4, 8 (default "
                                         f"{layerbvh.DEFAULT_BRANCHING})")
     s.add_argument("--configs", help="converge: comma list, one point each: stock, embree, auto, per_ray, "
                                      "layer_sorted:H, layer_unsorted:H (default stock,per_ray,layer_sorted)")
@@ -609,7 +609,8 @@ JOB_OPTIONS = {  # which options each job takes (an option given to another job 
     "compare": {"spp", "res", "seed", "traversal", "treelet_heights", "branchings"},
     "converge": {"res", "configs", "budget", "ref_spp", "max_spp"},
     "bench": {"spp", "res", "seed", "treelet_heights", "branchings", "rays", "ray_count", "runs"},
-    "locality": {"spp", "res", "seed", "treelet_heights", "rays", "ray_count", "preset", "warp", "sample", "segment"},
+    "locality": {"spp", "res", "seed", "treelet_heights", "branchings", "rays", "ray_count", "preset", "warp", "sample",
+                 "segment"},
 }
 ALL_JOB_OPTIONS = set().union(*JOB_OPTIONS.values())
 
@@ -683,7 +684,7 @@ def grid(args) -> list[dict]:
         return [{"config": c.name, "budget": args.budget, "ref_spp": args.ref_spp or 4096, "max_spp": args.max_spp,
                  "res": res, "variant": args.variant} for c in configs]
     if args.job == "locality":
-        return _locality_grid(args, res, seed)
+        return _locality_grid(args, res, seed, branchings)
     kinds = _names(args.rays or ",".join(GENERATED_RAYS))
     for k in kinds:
         if k not in GENERATED_RAYS + record.KINDS:
@@ -707,15 +708,15 @@ def grid(args) -> list[dict]:
              "seed": seed, "variant": args.variant} for k in kinds]
 
 
-def _locality_grid(args, res, seed: int) -> list[dict]:
-    """One point per recorded kind and treelet height; each replays every mode x preset x warp."""
+def _locality_grid(args, res, seed: int, branchings: list[int]) -> list[dict]:
+    """One point per recorded kind, treelet height and branching; each replays every mode x preset x warp."""
 
 
     opts = SimpleNamespace(scene="", res=res, spp=int(args.spp) if args.spp and args.spp.isdigit() else None,
                            seed=seed, rays=args.rays or ",".join(DEFAULT_KINDS), warp=args.warp,
                            preset=args.preset or ",".join(DEFAULT_PRESETS),
                            treelet_heights=args.treelet_heights or str(layerbvh.DEFAULT_TREELET_HEIGHT),
-                           modes=",".join(layerbvh.MODES), leaf_size=layerbvh.DEFAULT_LEAF_SIZE, sample=args.sample,
+                           modes=",".join(layerbvh.MODES), leaf_size=None, sample=args.sample,
                            cap=args.ray_count or DEFAULT_CAP, no_check=False, segment=args.segment)
     if args.spp and not args.spp.isdigit():
         raise UserError(f"--spp for --job locality is one value >= 1 (the recording's), got {args.spp}")
@@ -725,8 +726,8 @@ def _locality_grid(args, res, seed: int) -> list[dict]:
         raise UserError(str(e)) from None
     return [{"rays": k, "treelet_height": h, "presets": list(req.presets), "warps": list(req.warps or []) or None,
              "res": res, "spp": req.spp or DEFAULT_SPP, "seed": seed, "sample": req.sample, "ray_count": req.cap,
-             "segments": list(req.segments) if req.segments else None, "variant": args.variant}
-            for k in req.kinds for h in req.treelet_heights]
+             "segments": list(req.segments) if req.segments else None, "variant": args.variant, "branching": b}
+            for k in req.kinds for h in req.treelet_heights for b in branchings]
 
 
 def run_command(args) -> int:

@@ -163,8 +163,9 @@ def run_locality(point: dict, out: Path) -> dict:
     req = LocalityRequest(scene=point["scene"], res=tuple(s["res"]) if s.get("res") else None, spp=s["spp"],
                           seed=s["seed"], kinds=(s["rays"],), warps=tuple(s["warps"]) if s.get("warps") else None,
                           presets=tuple(s["presets"]), treelet_heights=(s["treelet_height"],), modes=layerbvh.MODES,
-                          leaf_size=layerbvh.DEFAULT_LEAF_SIZE, sample=s.get("sample"), cap=s["ray_count"],
-                          segments=tuple(s["segments"]) if s.get("segments") else None)
+                          leaf_size=None, sample=s.get("sample"), cap=s["ray_count"],
+                          segments=tuple(s["segments"]) if s.get("segments") else None,
+                          branching=s.get("branching", 2))
     try:
         doc = measure_scene(mi, req, progress=False)
     except ValueError as e:
