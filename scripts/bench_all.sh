@@ -29,9 +29,9 @@ cp -r out/sweep_converge/converge/paper_mix docs/converge/paper_mix
 # (PERFORMANCE.md entry 25).
 $PY scripts/bench_auto.py --rounds 3 --json docs/bench/auto_render.json
 # The locality model (memory transactions and cache hits per mode) on both scenes' recorded rays
-# (about 13 minutes on 2 cores); BENCHMARKS.md's locality section.
+# (about 20 minutes on 2 cores; the 4-wide tree a render gets); BENCHMARKS.md's locality section.
 $LAYERBVH sweep scenes/paper_mix.xml out/stress_spheres_1m/scene.xml --job locality \
-    --rays camera,first_bounce_diffuse,diffuse,shadow --treelet-heights 4,8 --res 512 512 --spp 1 --workers 1 \
+    --rays camera,first_bounce_diffuse,diffuse,shadow --treelet-heights 4,8,12 --res 512 512 --spp 1 --workers 1 \
     --rerun --no-progress --out out/sweep_locality
 cp out/sweep_locality/locality.json docs/bench/locality.json
 # ... and against the warp (packet) width on the incoherent kinds (about 12 minutes).
