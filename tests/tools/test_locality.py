@@ -201,3 +201,24 @@ def test_locality_command(tmp_path):
         r = _cli("locality", str(SCENES / "cbox.xml"), "--out", str(tmp_path / "x"), *bad, cwd=tmp_path)
         lines = r.stderr.strip().splitlines()
         assert r.returncode == 2 and len(lines) == 1 and says in lines[0], r.stderr
+
+
+def test_height_table_sets_sorted_against_per_ray_per_height():
+    """BENCHMARKS.md's table against the treelet height: per kind and height, layer_sorted's total
+    bytes over per_ray's and its steps per ray, at the headline warp and branching only."""
+    import dataclasses
+    from layerbvh_mitsuba.tools.bench.locality import height_table
+    names = [f.name for f in dataclasses.fields(L.LocalityRow) if f.default is dataclasses.MISSING
+             and f.default_factory is dataclasses.MISSING]
+    base = L.LocalityRow(**{n: 0 for n in names})
+    rows = []
+    for h, sorted_total, steps in ((8, 120.0, 5.0), (12, 82.0, 3.0)):
+        for k in (2, 4):  # the binary rows must not leak into the default tree's table
+            rows += [dataclasses.replace(base, kind="shadow", mode="per_ray", preset="gtx965m", warp=32, treelet_height=h,
+                                         branching=k, dram_bytes_per_ray=100.0),
+                     dataclasses.replace(base, kind="shadow", mode="layer_sorted", preset="gtx965m", warp=32,
+                                         treelet_height=h, branching=k, total_dram_bytes_per_ray=sorted_total * k / 4,
+                                         steps_per_ray=steps)]
+    table = height_table(rows)
+    assert "| shadow | 1.20×, 5.00 | 0.82×, 3.00 |" in table, table
+    assert height_table([r for r in rows if r.treelet_height == 8]) == ""

@@ -201,6 +201,28 @@ MEANING = (
     "against.")
 
 
+def height_table(rows: list) -> str:
+    """layer_sorted against per_ray per kind and treelet height (one preset's rows, at its headline
+    warp width and branching): the sorted path's total DRAM bytes over per_ray's, and its steps per
+    ray. Empty when only one height was measured."""
+    warp, _, k = headline_config(rows)
+    mine = [r for r in rows if r.warp == warp and r.branching == k]
+    heights = sorted({r.treelet_height for r in mine})
+    if len(heights) < 2:
+        return ""
+    out = "| kind | " + " | ".join(f"H={h}: total ÷ per_ray, steps/ray" for h in heights) + " |\n|" + \
+        "---|" * (len(heights) + 1) + "\n"
+    for kind in dict.fromkeys(r.kind for r in mine):
+        cells = []
+        for h in heights:
+            g = {r.mode: r for r in mine if r.kind == kind and r.treelet_height == h}
+            p_, s_ = g.get("per_ray"), g.get("layer_sorted")
+            cells.append(f"{s_.total_dram_bytes_per_ray / p_.dram_bytes_per_ray:.2f}×, {s_.steps_per_ray:.2f}"
+                         if p_ and s_ and p_.dram_bytes_per_ray else "–")
+        out += f"| {kind} | " + " | ".join(cells) + " |\n"
+    return out
+
+
 def table_compact(rows: list) -> str:
     """Per kind and mode: the figures BENCHMARKS.md shows."""
     cols = ("kind", "mode", "rays", "node tx/ray", "SIMD eff.", "L1 hit", "L2 hit", "node+tri DRAM B/ray",
@@ -240,6 +262,12 @@ def benchmarks_section(doc: dict, fig_rel: str) -> str:
                   + ("checked against the kernel: every ray's hit, work counts and loads of each kind equal." if exact else
                      "check FAILED on some rays: see the run's summary.md."), ""]
         parts += [f"- {v}" for v in preset_verdict(rows).values()] + [""]
+        first = [r for r in rows if r.preset == rows[0].preset]
+        by_height = height_table(first)
+        if by_height:
+            warp, _, k = headline_config(first)
+            parts += [f"Against the treelet height ({rows[0].preset}, W={warp}, K={k}; layer_sorted's total DRAM "
+                      f"bytes, between steps included, over per_ray's, and its steps per ray):", "", by_height]
         for pre in dict.fromkeys(r.preset for r in rows):
             mine = [r for r in rows if r.preset == pre]
             warp, h, k = headline_config(mine)
