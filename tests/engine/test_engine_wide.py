@@ -174,13 +174,3 @@ def test_bad_branching_is_refused_by_name(bunny):
     for bad in (3, 16, 1, "4"):
         with pytest.raises(ValueError, match="branching must be"):
             layerbvh.build(v, f, branching=bad)
-
-
-def test_the_locality_replay_refuses_a_wide_tree(bunny):
-    from layerbvh.locality import replay
-    from layerbvh.memmodel import PRESETS
-    v, f = bunny
-    lay = layerbvh.build(v, f, branching=4).layout
-    o, d = _rays(v, "camera", 64)
-    with pytest.raises(ValueError, match="binary Layer BVH"):
-        replay(lay, o, d, np.inf, "per_ray", False, 8, PRESETS["gtx965m"])
