@@ -12,8 +12,12 @@
 #   run(command="python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl &&
 #       PYTHONPATH=/tmp/site python3 scripts/gpu_check_device.py out/gpu_check --backend cuda",
 #       carry=[".whl", "out/gpu_check"], timeout_s=480)
-# The device half needs only the engine; it prints, per kind, both modes' Mrays/s, the measured
-# ratio, the model's, and how many hits differ from the LLVM replay (CUDA's rcp is approximate).
+# The device half needs only the engine; it prints, per (K, H) and kind, both modes' Mrays/s, the
+# measured ratio, the model's, and how many hits differ from the LLVM replay (CUDA's rcp is
+# approximate), then the sphere soup's rows; `--kernels 16000000` lists each launch's GPU time.
+# Copy what it wrote (measured_cuda.json, the --kernels output as kernels_*.log) with model.json into
+# docs/bench/gpu_<name>/ and run `python -m layerbvh_mitsuba.tools.bench.gpu_report` for
+# BENCHMARKS.md's GPU section. On the H200 the device half took under a minute.
 # BACKEND=llvm runs the device half here too (a dry run of the whole check on the CPU).
 set -euo pipefail
 cd "$(dirname "$0")/.."

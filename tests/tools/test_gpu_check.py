@@ -1,0 +1,59 @@
+"""The GPU check's device half and its report: the device script's kernel listing, run here on the LLVM backend, is what gpu_report splits into traversal, stack-move and sort time."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from layerbvh_mitsuba.repo import ROOT
+from layerbvh_mitsuba.tools.bench import gpu_report
+
+
+@pytest.fixture(scope="module")
+def listing(tmp_path_factory):
+    """`gpu_check_device.py --kernels` on a small soup (20k rays: several steps before the tail), binary tree at height 4, on the CPU."""
+    folder = tmp_path_factory.mktemp("gpu_check")
+    (folder / "model.json").write_text(json.dumps({"configs": [[2, 4]]}))
+    run = subprocess.run([sys.executable, str(ROOT / "scripts" / "gpu_check_device.py"), str(folder), "--backend",
+                          "llvm", "--kernels", "20000", "--soup", "4000"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    return run.stdout
+
+
+def test_the_kernel_listing_splits_into_the_sorted_paths_stages(listing):
+    rows = {r["mode"]: r for r in gpu_report.kernel_split(listing)}
+    assert set(rows) == {"per_ray", "layer_sorted"}
+    p, s = rows["per_ray"], rows["layer_sorted"]
+    # per_ray is one traversal kernel and a few set-up launches; nothing is sorted or moved
+    assert p["steps"] == 1 and p["stack_ms"] == 0 and p["sort_ms"] == 0
+    # the sorted path: one traversal kernel per wavefront step, a stack move after each step that
+    # does not end the trace, a counting sort (MkPerm) between steps
+    assert s["steps"] >= 3 and s["stack_ms"] > 0 and s["sort_ms"] > 0
+    split = s["traversal_ms"] + s["stack_ms"] + s["sort_ms"] + s["rest_ms"]
+    assert split == pytest.approx(s["kernels_ms"], rel=0.02, abs=0.05)  # every launch counted once
+    assert s["host_gaps_ms"] == pytest.approx(s["wall_ms"] - s["kernels_ms"])
+    assert s["launches"] > p["launches"]
+
+
+def test_the_stack_move_is_the_launch_after_each_step():
+    text = "\n".join([
+        "K=2 H=8 layer_sorted: 10 rays, 6 launches, kernels 7.00 ms of 9.00 ms wall",
+        "   KernelType.JIT         width         10 ops     35 in   6 out   1    0.500 ms",
+        "   KernelType.JIT         width         10 ops    700 in  18 out   7    3.000 ms",
+        "   KernelType.JIT         width        160 ops     27 in   8 out   2    1.000 ms",
+        "   KernelType.MkPerm      width         10 ops      0 in   1 out   1    0.250 ms",
+        "   KernelType.JIT         width         10 ops     12 in   2 out   1    0.250 ms",
+        "   KernelType.JIT         width          6 ops    700 in  13 out   1    2.000 ms"])
+    (r,) = gpu_report.kernel_split(text)
+    assert (r["traversal_ms"], r["steps"], r["stack_ms"], r["sort_ms"], r["rest_ms"]) == (5.0, 2, 1.0, 0.25, 0.75)
+    assert r["host_gaps_ms"] == 2.0
+
+
+def test_the_committed_gpu_section_is_what_the_report_writes():
+    """BENCHMARKS.md's GPU section is generated from docs/bench/gpu_h200, never edited by hand."""
+    text = (ROOT / "BENCHMARKS.md").read_text()
+    start, end = f"<!-- {gpu_report.GPU_SECTION}:start -->", f"<!-- {gpu_report.GPU_SECTION}:end -->"
+    have = text[text.index(start) + len(start):text.index(end)].strip()
+    assert have == gpu_report.section(gpu_report.DEFAULT_FOLDER).strip()
