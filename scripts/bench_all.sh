@@ -38,6 +38,11 @@ cp out/sweep_locality/locality.json docs/bench/locality.json
 $LAYERBVH sweep scenes/paper_mix.xml out/stress_spheres_1m/scene.xml --job locality --rays diffuse,shadow \
     --treelet-heights 8 --warp 8,16,32 --res 512 512 --spp 1 --workers 1 --rerun --no-progress --out out/sweep_locality_w
 cp out/sweep_locality_w/locality.json docs/bench/locality_warps.json
+# The locality model against valgrind's cache simulator on the real kernels (issue 41; about 6
+# minutes; needs Debian's valgrind): its own section of BENCHMARKS.md, which report.py keeps.
+$PY scripts/check_model_cachegrind.py --mesh scenes/meshes/bunny.ply --rays 20000 --json docs/bench/cachegrind_bunny.json
+$PY scripts/check_model_cachegrind.py --mesh procedural:600000 --rays 20000 --json docs/bench/cachegrind_procedural_600k.json
+$PY scripts/check_model_cachegrind.py --report docs/bench/cachegrind_bunny.json docs/bench/cachegrind_procedural_600k.json
 $PY scripts/report.py --bench docs/bench/bench_meshes.json --bench docs/bench/bench.json \
     --scaling docs/bench/scaling.json --converge docs/converge/paper_mix --locality docs/bench/locality.json \
     --locality docs/bench/locality_warps.json --readme

@@ -253,6 +253,12 @@ MUTATIONS = (
              '                cur["stack_ms"] += ms\n',
              '                cur["rest_ms"] += ms\n',
              ("tests/tools/test_gpu_check.py::test_the_stack_move_is_the_launch_after_each_step",)),
+    Mutation("cachegrind_check_model_over_2n", "the cachegrind check spreads the model's extra misses over 2N rays "
+             "where valgrind's are spread over N",
+             "scripts/check_model_cachegrind.py",
+             '    return {"D1": float(got[2 * n][0].sum() - got[n][0].sum()) / n,',
+             '    return {"D1": float(got[2 * n][0].sum() - got[n][0].sum()) / (2 * n),',
+             ("tests/tools/test_model_cachegrind.py::test_the_model_misses_what_valgrind_misses_on_the_per_ray_kernel",)),
 )
 
 

@@ -1,0 +1,383 @@
+"""Check the locality model against valgrind's cache simulator: first-level and last-level read misses per ray of the real LLVM kernels, beside the model's replay of the same rays on the same cache geometry.
+
+    .venv/bin/python scripts/check_model_cachegrind.py --mesh scenes/meshes/bunny.ply --rays 20000 \\
+        [--d1 32 --d1 8] [--ll 1024] [--modes per_ray,layer_sorted,layer_unsorted] --json OUT
+    .venv/bin/python scripts/check_model_cachegrind.py --report OUT [OUT ...]   # BENCHMARKS.md's section
+
+How (issue 41):
+- The rays are incoherent (layerbvh.meshes.incoherent_rays, as the benchmarks make them); the tree
+  is built here (numba) and handed to a child process as arrays, so nothing is built under
+  valgrind. Valgrind's CPU has no AVX-512 and another model name, so Dr.Jit's kernels cached for
+  the host do not apply: a warm-up child under `valgrind --tool=none` compiles them once into
+  Dr.Jit's cache, and the measured children load them from there.
+- The measured children run under valgrind's callgrind with its cache simulator
+  (`--cache-sim=yes`, the same simulator as cachegrind's, with the D1 and LL geometry set: 8-way
+  D1, 16-way LL, 64-byte lines) and one Dr.Jit thread. Cachegrind 3.19 has no instrumentation
+  toggles; callgrind's can be driven while the process runs (`callgrind_control`): the child
+  starts uninstrumented, the parent switches instrumentation on once the child has loaded
+  everything (`--instr=on`), zeroes the counters just before each mode's trace call (`-z`) and
+  dumps them just after (`-d`). Start-up, imports and loading are never counted; the caches are
+  simulated from before the first warm-up trace on.
+- Per D1 size, one child traces the first N rays in each mode, one the first 2N; the difference
+  of their regions' read misses, over N, is what a ray costs (the constant per-call work, Python
+  tracing the kernels and the launches, cancels). The model replays the same N and 2N rays on a
+  preset of the same geometry (one core, the child's SIMD width, Dr.Jit's packet schedule), and
+  the same difference is taken.
+What each side leaves out is printed with the table (BLIND_SPOTS).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))  # the checkout's layerbvh, also in the child
+
+MODES = ("per_ray", "layer_sorted", "layer_unsorted")
+WARM_RAYS = 4096
+PARTS = ("traversal kernels", "other kernels", "Dr.Jit runtime", "rest")
+# The walk loop compiles to thousands of instructions; set-up, gather and stack-move kernels to
+# under a few hundred.
+TRAVERSAL_INSTRUCTIONS = 1000  # rays past the 2N of the check, traced first in each child to load the kernels
+LINE = 64
+D1_WAYS, LL_WAYS = 8, 16
+SECTION = "cachegrind"  # BENCHMARKS.md's markers around the section
+# The agreement issue 41 asks for.
+RATIO_TOLERANCE, ABSOLUTE_TOLERANCE = 0.15, 0.30
+BLIND_SPOTS = (
+    "The model simulates the traversal kernels' loads only: the kernels' stores (state records, hits, "
+    "pushed entries), the between-step kernels (stack moves, the counting sort, gathers of the "
+    "permutation) and the host's work between steps are not in its misses (the layer modes' "
+    "`sort_bytes` estimate stands for them elsewhere); valgrind counts every read the trace call "
+    "makes. Valgrind's own simplifications: an inclusive LL, LRU everywhere, no prefetching, no "
+    "TLB, and one cache for all threads (the children run one Dr.Jit thread). Misses are read "
+    "misses (D1mr, DLmr) against the model's transactions that miss L1 and L2.")
+
+
+# -- the child: engine only, runs under valgrind ------------------------------------------------------
+def child(work: Path, n: int, modes: list[str], out: Path) -> None:
+    import gc
+
+    import drjit as dr
+
+    from layerbvh import backend as be
+    from layerbvh import meshes, wavefront
+    from layerbvh.inputs import ray_batch
+    from layerbvh.layout import LayerLayout
+
+    gc.disable()  # (a collection inside the region would be noise of its own)
+    dr.set_thread_count(0)  # kernels on this thread: one cache hierarchy, the model's one core, and in the region
+    z = np.load(work / "layout.npz")
+    lay = LayerLayout(nodes=z["nodes"], leaves=z["leaves"], tris=z["tris"], treelet_first=z["treelet_first"],
+                      node_treelet=z["node_treelet"], leaf_treelet=z["leaf_treelet"], depth=int(z["depth"]),
+                      height=int(z["height"]), branching=int(z["branching"]))
+    m = be.module("llvm")
+    dev = lay.to_device(m)
+    r = np.load(work / "rays.npz")
+    tail = dict(tail_rays=int(z["tail_rays"]), tail_fraction=float(z["tail_fraction"]))
+
+    def rays(lo, hi):  # (made outside the measured region: numpy's copies are not the traversal's)
+        o, d = meshes.device_rays(m, r["o"][lo:hi], r["d"][lo:hi])
+        batch = ray_batch(m, "llvm", o, d, m.Float(np.full(hi - lo, np.inf, np.float32)))
+        dr.eval(*batch.o, *batch.d, batch.tmax, batch.valid)
+        return batch
+
+    def trace(batch, mode):
+        res, _ = wavefront.trace(m, dev, batch, mode=mode, any_hit=False, count_work=False, **tail)
+        dr.eval(res.t, res.prim)
+        return res
+    # Everything is loaded: the parent switches callgrind's instrumentation on here (it runs
+    # uninstrumented until now, so start-up costs no simulation time).
+    print("loaded", flush=True)
+    sys.stdin.readline()
+    prims = {}
+    for mode in modes:
+        trace(rays(len(r["o"]) - WARM_RAYS, len(r["o"])), mode)  # loads every kernel of the mode (rays of their own)
+        batch = rays(0, n)
+        dr.sync_thread()
+        # The region: the parent zeroes callgrind's counters (callgrind_control -z) when this says
+        # "ready", and dumps them (-d) when it says "done".
+        print("ready", flush=True)
+        sys.stdin.readline()
+        got = [trace(batch, mode)]
+        dr.sync_thread()
+        print("done", flush=True)
+        sys.stdin.readline()
+        prims[mode] = np.asarray(got[0].prim).astype(np.int64)
+    np.savez(out, lanes=be.llvm_vector_width(), **prims)
+
+
+# -- the parent -------------------------------------------------------------------------------------------
+def _run_child(work: Path, n: int, modes: list[str], tool: list[str], tag: str, between=None) -> dict:
+    """One child under valgrind tracing n rays per mode; `between(pid, i)` is called when mode i's
+    region starts (i, "ready") and when it ends (i, "done")."""
+    out = work / f"{tag}.npz"
+    cmd = ["valgrind", "-q", *tool, sys.executable, __file__, "--child", str(work), str(n), ",".join(modes), str(out)]
+    proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONHASHSEED": "0"})
+    for i, say in [(-1, "loaded")] + [(i, say) for i in range(len(modes)) for say in ("ready", "done")]:
+        line = proc.stdout.readline().strip()
+        if line != say:
+            break
+        if between:
+            between(proc.pid, i, say)
+        proc.stdin.write("go\n")
+        proc.stdin.flush()
+    _, err = proc.communicate()
+    if proc.returncode != 0 or not out.exists():
+        raise SystemExit(f"check_model_cachegrind: the child under valgrind failed ({' '.join(tool[:1])}): "
+                         f"{err.strip().splitlines()[-1] if err.strip() else proc.returncode}")
+    return dict(np.load(out))
+
+
+def read_callgrind(path: Path) -> dict:
+    """A callgrind dump's event counters since they were zeroed ('summary:' over 'events:'). (Not
+    the sum of its cost lines, 'totals:': the functions still running when the counters were
+    zeroed, the interpreter's frames around the region, keep their earlier costs there.)"""
+    events, summary = [], None
+    for line in path.read_text().splitlines():
+        if line.startswith("events:"):
+            events = line.split()[1:]
+        elif line.startswith("summary:"):
+            summary = [int(x) for x in line.split()[1:]]
+    if summary is None:
+        raise ValueError(f"{path}: no summary line")
+    return dict(zip(events, summary + [0] * (len(events) - len(summary))))
+
+
+def cachegrind_misses(work: Path, n: int, modes: list[str], d1_kib: int, ll_kib: int) -> dict:
+    """Per mode: read misses per ray of tracing rays n..2n (the region of the child that traces 2n
+    rays minus that of the child that traces n). The counters are zeroed when a region starts and
+    dumped when it ends (callgrind_control), so only the trace call is counted; callgrind simulates
+    the caches all along, so each region starts with the caches as the process left them."""
+    got = {}
+    for k in (n, 2 * n):
+        cg = work / f"cg_{d1_kib}_{k}.out"
+
+        def between(pid, i, say):
+            flag = {"loaded": "--instr=on", "ready": "-z", "done": "-d"}[say]
+            subprocess.run(["callgrind_control", flag, str(pid)], check=True, capture_output=True)
+        tool = ["--tool=callgrind", "--cache-sim=yes", "--instr-atstart=no", f"--D1={d1_kib * 1024},{D1_WAYS},{LINE}",
+                f"--LL={ll_kib * 1024},{LL_WAYS},{LINE}", f"--callgrind-out-file={cg}"]
+        prims = _run_child(work, k, modes, tool, f"cg_{d1_kib}_{k}", between)
+        got[k] = {mode: (read_callgrind(Path(f"{cg}.{i + 1}")), prims[mode]) for i, mode in enumerate(modes)}
+    out = {}
+    for mode in modes:
+        a, b = got[n][mode][0], got[2 * n][mode][0]
+        out[mode] = {"D1": (b["D1mr"] - a["D1mr"]) / n, "LL": (b["DLmr"] - a["DLmr"]) / n,
+                     "D1_writes": (b["D1mw"] - a["D1mw"]) / n, "instructions": (b["Ir"] - a["Ir"]) / n,
+                     "prim": got[2 * n][mode][1]}
+    return out
+
+
+def model_preset(d1_kib: int, ll_kib: int, lanes: int):
+    from layerbvh.memmodel import DRJIT_LLVM_BLOCK_LANES, KIB, CacheLevel, Preset
+    return Preset(
+        name=f"cachegrind-d1-{d1_kib}k", description=f"cachegrind's D1 {d1_kib} KiB, LL {ll_kib} KiB", kind="cpu",
+        units=1, resident_warps=1, block_warps=max(1, DRJIT_LLVM_BLOCK_LANES // lanes), warp=lanes, segment_bytes=LINE,
+        levels=(CacheLevel("L1", d1_kib * KIB, D1_WAYS, LINE, False), CacheLevel("L2", ll_kib * KIB, LL_WAYS, LINE, True)),
+        flush_private_each_kernel=False, source="set to the geometry given to cachegrind (check_model_cachegrind.py)")
+
+
+def model_misses(bvh, o, d, n: int, mode: str, pre) -> dict:
+    """The model's L1 and L2 (last-level) misses per ray of rays n..2n, as valgrind's are taken,
+    in total and per kind of load (memtrace.CATEGORY: nodes, triangles, stacks, ray and state
+    records)."""
+    from layerbvh import memtrace as mt
+    from layerbvh import replay
+    got = {}
+    for k in (n, 2 * n):
+        rep = replay(bvh.layout, o[:k], d[:k], np.full(k, np.inf, np.float32), mode, False, pre.warp, pre,
+                     bvh.tail_rays, bvh.tail_fraction)
+        lh = rep.levels_hit  # [site, level]: transactions served there (last column: below the last level)
+        miss_l1 = lh.sum(axis=1) - lh[:, 0]
+        got[k] = (miss_l1, lh[:, -1], rep.prim, rep.sort_bytes)
+    parts = {"D1": {}, "LL": {}}
+    for cat, sites in {**mt.CATEGORY, "ray and state records": tuple(range(mt.S_START, mt.SITES))}.items():
+        sites = list(sites)
+        parts["D1"][cat] = float(got[2 * n][0][sites].sum() - got[n][0][sites].sum()) / n
+        parts["LL"][cat] = float(got[2 * n][1][sites].sum() - got[n][1][sites].sum()) / n
+    return {"D1": float(got[2 * n][0].sum() - got[n][0].sum()) / n, "LL": float(got[2 * n][1].sum() - got[n][1].sum()) / n,
+            "parts": parts, "prim": got[2 * n][2],
+            # what the model's formula (locality.sort_traffic) says the steps move between them, in lines
+            "between_steps_lines": (got[2 * n][3] - got[n][3]) / n / LINE}
+
+
+def load_mesh(spec: str):
+    from layerbvh import meshes
+    if spec.startswith("procedural:"):
+        return meshes.procedural_mesh(int(spec.split(":", 1)[1]))
+    return meshes.load_mesh(spec)
+
+
+def check(args) -> dict:
+    import layerbvh
+    from layerbvh import meshes
+    v, f = load_mesh(args.mesh)
+    bvh = layerbvh.build(v, f, treelet_height=args.height, branching=args.branching, backend="llvm")
+    n = args.rays
+    o, d = meshes.incoherent_rays(v, 2 * n + WARM_RAYS, seed=args.seed)
+    work = Path(tempfile.mkdtemp(prefix="cachegrind-"))
+    lay = bvh.layout
+    np.savez(work / "layout.npz", nodes=lay.nodes, leaves=lay.leaves, tris=lay.tris, treelet_first=lay.treelet_first,
+             node_treelet=lay.node_treelet, leaf_treelet=lay.leaf_treelet, depth=lay.depth, height=lay.height,
+             branching=lay.branching, tail_rays=bvh.tail_rays, tail_fraction=bvh.tail_fraction)
+    np.savez(work / "rays.npz", o=o, d=d)
+    t0 = time.perf_counter()
+    warm = _run_child(work, n, args.modes, ["--tool=none"], "warm")  # compiles the kernels for valgrind's CPU
+    lanes = int(warm["lanes"])
+    print(f"{args.mesh}: {len(f):,} triangles, K={args.branching}, H={args.height}; {n:,} incoherent rays; "
+          f"{lanes} lanes under valgrind (warm-up {time.perf_counter() - t0:.0f} s)", flush=True)
+    rows = []
+    for d1 in args.d1:
+        pre = model_preset(d1, args.ll, lanes)
+        t0 = time.perf_counter()
+        cgs = cachegrind_misses(work, n, args.modes, d1, args.ll)
+        for mode in args.modes:
+            cg, mo = cgs[mode], model_misses(bvh, o, d, n, mode, pre)
+            exact = bool(np.array_equal(cg["prim"], mo["prim"]))
+            for level in ("D1", "LL"):
+                rows.append({"mode": mode, "level": level, "d1_kib": d1, "ll_kib": args.ll,
+                             "model_misses_per_ray": mo[level], "cachegrind_misses_per_ray": cg[level],
+                             "cachegrind_write_misses_per_ray": cg["D1_writes"] if level == "D1" else None,
+                             "instructions_per_ray": cg["instructions"], "model_parts": mo["parts"][level],
+                             "model_between_steps_lines_per_ray": mo["between_steps_lines"],
+                             "hits_equal": exact})
+            print(f"  D1 {d1:3} KiB {mode:15} read misses/ray, D1: model {mo['D1']:6.2f}, valgrind {cg['D1']:6.2f} "
+                  f"(+ {cg['D1_writes']:.2f} write misses; model's between-step estimate {mo['between_steps_lines']:.2f} lines); "
+                  f"LL: model {mo['LL']:5.2f}, valgrind {cg['LL']:5.2f}; "
+                  f"{cg['instructions']:.0f} instructions/ray; hits {'equal' if exact else 'DIFFER'}", flush=True)
+        print(f"  ({time.perf_counter() - t0:.0f} s)", flush=True)
+    if not args.keep:
+        shutil.rmtree(work, ignore_errors=True)
+    return {"mesh": args.mesh, "triangles": int(len(f)), "rays": n, "branching": args.branching,
+            "treelet_height": args.height, "lanes": lanes, "ll_kib": args.ll, "seed": args.seed,
+            "command": "scripts/check_model_cachegrind.py " + " ".join(sys.argv[1:]), "rows": rows,
+            "verdicts": verdicts(rows)}
+
+
+def verdicts(rows: list[dict]) -> list[dict]:
+    """Per D1 size and level: sorted / per_ray misses in the model and in cachegrind, and whether
+    the ratio (within RATIO_TOLERANCE), the absolute misses (ABSOLUTE_TOLERANCE) and the verdict
+    (which mode misses less) agree."""
+    out = []
+    by = {(r["mode"], r["level"], r["d1_kib"]): r for r in rows}
+    for (mode, level, d1), s in by.items():
+        p = by.get(("per_ray", level, d1))
+        if mode != "layer_sorted" or p is None:
+            continue
+        rm = s["model_misses_per_ray"] / p["model_misses_per_ray"] if p["model_misses_per_ray"] else float("nan")
+        rc = s["cachegrind_misses_per_ray"] / p["cachegrind_misses_per_ray"] if p["cachegrind_misses_per_ray"] else float("nan")
+        absolute = all(abs(r["model_misses_per_ray"] - r["cachegrind_misses_per_ray"])
+                       <= ABSOLUTE_TOLERANCE * r["cachegrind_misses_per_ray"] for r in (p, s))
+        out.append({"level": level, "d1_kib": d1, "model_ratio": rm, "cachegrind_ratio": rc,
+                    "ratio_agrees": abs(rm - rc) <= RATIO_TOLERANCE * rc, "absolute_agrees": absolute,
+                    "verdict_agrees": (rm < 1) == (rc < 1)})
+    return out
+
+
+# -- BENCHMARKS.md ------------------------------------------------------------------------------------------
+def section(docs: list[dict]) -> str:
+    parts = ["## The model against valgrind's cache simulator (`scripts/check_model_cachegrind.py`)", "",
+             "Read misses per ray of the real LLVM kernels under valgrind's cache simulator (callgrind "
+             "`--cache-sim=yes`, the simulator of cachegrind), beside the locality "
+             "model's replay of the same incoherent rays on the same cache geometry (8-way D1, 16-way LL, "
+             "64-byte lines, one core). Both sides difference a run of 2N rays and one of N (the script's "
+             "docstring says how). ±: the targets of issue 41, sorted ÷ per_ray ratio within "
+             f"{RATIO_TOLERANCE:.0%} and absolute misses within {ABSOLUTE_TOLERANCE:.0%}.", "", BLIND_SPOTS, ""]
+    for doc in docs:
+        parts += [f"### {Path(doc['mesh']).name} ({doc['triangles']:,} triangles), {doc['rays']:,} rays, "
+                  f"K={doc['branching']}, H={doc['treelet_height']}, {doc['lanes']} lanes", "",
+                  f"`{doc['command']}`", "",
+                  "| D1 | level | mode | model read misses/ray | valgrind read misses/ray | valgrind write misses/ray | model ÷ valgrind | hits equal |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for r in doc["rows"]:
+            q = r["model_misses_per_ray"] / r["cachegrind_misses_per_ray"] if r["cachegrind_misses_per_ray"] else float("nan")
+            parts.append(f"| {r['d1_kib']} KiB | {r['level']} | {r['mode']} | {r['model_misses_per_ray']:.2f} | "
+                         f"{r['cachegrind_misses_per_ray']:.2f} | "
+                         f"{'' if r['cachegrind_write_misses_per_ray'] is None else format(r['cachegrind_write_misses_per_ray'], '.2f')} | {q:.2f} | "
+                         f"{'yes' if r['hits_equal'] else 'NO'} |")
+        parts += ["", "| D1 | level | sorted ÷ per_ray, model | sorted ÷ per_ray, valgrind | ratio within ±15% | "
+                  "absolute within ±30% | same verdict |", "|---|---|---|---|---|---|---|"]
+        for v in doc["verdicts"]:
+            parts.append(f"| {v['d1_kib']} KiB | {v['level']} | {v['model_ratio']:.2f} | {v['cachegrind_ratio']:.2f} | "
+                         f"{'yes' if v['ratio_agrees'] else 'no'} | {'yes' if v['absolute_agrees'] else 'no'} | "
+                         f"{'yes' if v['verdict_agrees'] else 'no'} |")
+        parts += ["", *unmodelled(doc["rows"]), ""]
+    return "\n".join(parts)
+
+
+def unmodelled(rows: list[dict]) -> list[str]:
+    """Per D1 size and layer mode, what valgrind counts beyond the model: the read misses the model
+    has not, the write misses beyond per_ray's (the layer modes' own stores), beside the lines
+    the model's between-step formula (locality.sort_traffic) stands for."""
+    by = {(r["mode"], r["level"], r["d1_kib"]): r for r in rows}
+    out = []
+    for (mode, level, d1), r in by.items():
+        p = by.get(("per_ray", "D1", d1))
+        if level != "D1" or mode == "per_ray" or p is None:
+            continue
+        extra = r["cachegrind_misses_per_ray"] - r["model_misses_per_ray"]
+        writes = r["cachegrind_write_misses_per_ray"] - p["cachegrind_write_misses_per_ray"]
+        out.append(f"- D1 {d1} KiB, {mode}: valgrind counts {extra:.1f} more read misses per ray than the model and "
+                   f"{writes:.1f} write misses per ray more than per_ray's; the model's between-step formula stands for "
+                   f"{r['model_between_steps_lines_per_ray']:.1f} lines ({64 * r['model_between_steps_lines_per_ray']:.0f} B) per ray.")
+    return out
+
+
+def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--child"]:
+        child(Path(argv[1]), int(argv[2]), argv[3].split(","), Path(argv[4]))
+        return 0
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--mesh", help=".ply/.obj, or procedural:TRIANGLES")
+    p.add_argument("--rays", type=int, default=20000, help="N: the children trace N and 2N rays (default %(default)s)")
+    p.add_argument("--d1", type=int, action="append", help="D1 size in KiB (repeatable; default 32 and 8)")
+    p.add_argument("--ll", type=int, default=1024, help="LL size in KiB (default %(default)s)")
+    p.add_argument("--modes", default=",".join(MODES), help="comma list (default %(default)s)")
+    p.add_argument("--branching", type=int, default=4)
+    p.add_argument("--height", type=int, default=8)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", help="write the rows here")
+    p.add_argument("--keep", action="store_true", help="keep the children's folder (cachegrind.out files)")
+    p.add_argument("--report", nargs="+", metavar="JSON", help="write BENCHMARKS.md's section from these and stop")
+    args = p.parse_args(argv)
+    if args.report:
+        from layerbvh_mitsuba import atomic
+        atomic.splice_section(ROOT / "BENCHMARKS.md", SECTION, section([json.loads(Path(j).read_text()) for j in args.report]))
+        print(f"replaced the {SECTION} section of BENCHMARKS.md")
+        return 0
+    if not args.mesh:
+        p.error("--mesh is required (or --report)")
+    if shutil.which("valgrind") is None:
+        print("check_model_cachegrind: valgrind is not installed (Debian: apt-get install valgrind)", file=sys.stderr)
+        return 2
+    args.modes = [m for m in args.modes.split(",") if m]
+    bad = [m for m in args.modes if m not in MODES]
+    if bad or args.rays < 1:
+        p.error(f"modes must be among {', '.join(MODES)} and --rays positive")
+    args.d1 = args.d1 or [32, 8]
+    doc = check(args)
+    if args.json:
+        tmp = Path(args.json).with_suffix(".tmp")
+        tmp.write_text(json.dumps(doc, indent=1))
+        tmp.replace(args.json)
+    for v in doc["verdicts"]:
+        print(f"D1 {v['d1_kib']} KiB {v['level']}: sorted / per_ray model {v['model_ratio']:.2f}, valgrind "
+              f"{v['cachegrind_ratio']:.2f}: ratio {'agrees' if v['ratio_agrees'] else 'DISAGREES'}, absolute "
+              f"{'agrees' if v['absolute_agrees'] else 'DISAGREES'}, verdict {'agrees' if v['verdict_agrees'] else 'DISAGREES'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

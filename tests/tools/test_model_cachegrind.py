@@ -1,0 +1,48 @@
+"""The locality model against valgrind's cache simulator on the real kernels (scripts/check_model_cachegrind.py), small: a few thousand bunny rays, per_ray and layer_sorted, one D1 size."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from layerbvh_mitsuba.repo import ROOT, SCENES
+
+needs_valgrind = pytest.mark.skipif(shutil.which("valgrind") is None or shutil.which("callgrind_control") is None,
+                                reason="valgrind is not installed (Debian: apt-get install valgrind); "
+                                       "bench_all.sh runs the full check where it is")
+
+
+@needs_valgrind
+def test_the_model_misses_what_valgrind_misses_on_the_per_ray_kernel(tmp_path):
+    out = tmp_path / "cg.json"
+    run = subprocess.run([sys.executable, str(ROOT / "scripts" / "check_model_cachegrind.py"), "--mesh",
+                          str(SCENES / "meshes" / "bunny.ply"), "--rays", "4000", "--d1", "32",
+                          "--modes", "per_ray,layer_sorted", "--json", str(out)],
+                         capture_output=True, text=True, timeout=400)
+    assert run.returncode == 0, run.stderr[-2000:]
+    doc = json.loads(out.read_text())
+    rows = {(r["mode"], r["level"]): r for r in doc["rows"]}
+    assert set(rows) == {(m, lv) for m in ("per_ray", "layer_sorted") for lv in ("D1", "LL")}
+    # the kernels under valgrind return the model's hits, ray for ray, in both modes
+    assert all(r["hits_equal"] for r in rows.values())
+    # per_ray's trace call is its one kernel: the model's read misses are valgrind's, within the
+    # issue's ±30% (measured: 8.3 against 8.8 in D1, 3.5 against 3.7 in LL at 20k rays)
+    for level in ("D1", "LL"):
+        r = rows[("per_ray", level)]
+        assert r["cachegrind_misses_per_ray"] > 1.0, r
+        assert abs(r["model_misses_per_ray"] - r["cachegrind_misses_per_ray"]) <= 0.3 * r["cachegrind_misses_per_ray"], r
+    # the layer mode's stores are outside the model: valgrind sees them as write misses
+    assert rows[("layer_sorted", "D1")]["cachegrind_write_misses_per_ray"] > \
+        rows[("per_ray", "D1")]["cachegrind_write_misses_per_ray"]
+
+
+def test_without_valgrind_the_check_says_so_in_one_line(tmp_path):
+    env_path = str(tmp_path)  # a PATH with no valgrind on it
+    run = subprocess.run([sys.executable, str(ROOT / "scripts" / "check_model_cachegrind.py"), "--mesh",
+                          str(SCENES / "meshes" / "bunny.ply")], capture_output=True, text=True, timeout=120,
+                         env={"PATH": env_path, "HOME": str(tmp_path)})
+    assert run.returncode == 2
+    assert run.stderr.strip().count("\n") == 0 and "valgrind is not installed" in run.stderr
