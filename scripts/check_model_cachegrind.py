@@ -8,16 +8,16 @@ How (issue 41):
 - The rays are incoherent (layerbvh.meshes.incoherent_rays, as the benchmarks make them); the tree
   is built here (numba) and handed to a child process as arrays, so nothing is built under
   valgrind. Valgrind's CPU has no AVX-512 and another model name, so Dr.Jit's kernels cached for
-  the host do not apply: a warm-up child under `valgrind --tool=none` compiles them once into
-  Dr.Jit's cache, and the measured children load them from there.
+  the host do not apply: the first child compiles them into Dr.Jit's cache (uninstrumented, see
+  below), the others load them from there.
 - The measured children run under valgrind's callgrind with its cache simulator
   (`--cache-sim=yes`, the same simulator as cachegrind's, with the D1 and LL geometry set: 8-way
   D1, 16-way LL, 64-byte lines) and one Dr.Jit thread. Cachegrind 3.19 has no instrumentation
   toggles; callgrind's can be driven while the process runs (`callgrind_control`): the child
-  starts uninstrumented, the parent switches instrumentation on once the child has loaded
-  everything (`--instr=on`), zeroes the counters just before each mode's trace call (`-z`) and
-  dumps them just after (`-d`). Start-up, imports and loading are never counted; the caches are
-  simulated from before the first warm-up trace on.
+  starts uninstrumented (it runs at near native speed), traces each mode once on rays of its
+  own (compiling or loading the kernels), and then the parent switches instrumentation on
+  (`--instr=on`), zeroes the counters just before each mode's trace call (`-z`) and dumps them
+  just after (`-d`). Start-up, imports, compiling and loading are never counted or simulated.
 - Per D1 size, one child traces the first N rays in each mode, one the first 2N; the difference
   of their regions' read misses, over N, is what a ray costs (the constant per-call work, Python
   tracing the kernels and the launches, cancels). The model replays the same N and 2N rays on a
@@ -95,13 +95,16 @@ def child(work: Path, n: int, modes: list[str], out: Path) -> None:
         res, _ = wavefront.trace(m, dev, batch, mode=mode, any_hit=False, count_work=False, **tail)
         dr.eval(res.t, res.prim)
         return res
-    # Everything is loaded: the parent switches callgrind's instrumentation on here (it runs
-    # uninstrumented until now, so start-up costs no simulation time).
+    # One trace per mode on rays of their own first: it compiles (once, into Dr.Jit's cache: the
+    # kernels cached for the host do not apply under valgrind's CPU) or loads every kernel of
+    # the mode, still uninstrumented. Then the parent switches instrumentation on.
+    for mode in modes:
+        trace(rays(len(r["o"]) - WARM_RAYS, len(r["o"])), mode)
+    dr.sync_thread()
     print("loaded", flush=True)
     sys.stdin.readline()
     prims = {}
     for mode in modes:
-        trace(rays(len(r["o"]) - WARM_RAYS, len(r["o"])), mode)  # loads every kernel of the mode (rays of their own)
         batch = rays(0, n)
         dr.sync_thread()
         # The region: the parent zeroes callgrind's counters (callgrind_control -z) when this says
@@ -169,6 +172,7 @@ def cachegrind_misses(work: Path, n: int, modes: list[str], d1_kib: int, ll_kib:
         tool = ["--tool=callgrind", "--cache-sim=yes", "--instr-atstart=no", f"--D1={d1_kib * 1024},{D1_WAYS},{LINE}",
                 f"--LL={ll_kib * 1024},{LL_WAYS},{LINE}", f"--callgrind-out-file={cg}"]
         prims = _run_child(work, k, modes, tool, f"cg_{d1_kib}_{k}", between)
+        lanes = int(prims["lanes"])
         got[k] = {mode: (read_callgrind(Path(f"{cg}.{i + 1}")), prims[mode]) for i, mode in enumerate(modes)}
     out = {}
     for mode in modes:
@@ -176,6 +180,7 @@ def cachegrind_misses(work: Path, n: int, modes: list[str], d1_kib: int, ll_kib:
         out[mode] = {"D1": (b["D1mr"] - a["D1mr"]) / n, "LL": (b["DLmr"] - a["DLmr"]) / n,
                      "D1_writes": (b["D1mw"] - a["D1mw"]) / n, "instructions": (b["Ir"] - a["Ir"]) / n,
                      "prim": got[2 * n][mode][1]}
+    out["lanes"] = lanes
     return out
 
 
@@ -232,16 +237,14 @@ def check(args) -> dict:
              node_treelet=lay.node_treelet, leaf_treelet=lay.leaf_treelet, depth=lay.depth, height=lay.height,
              branching=lay.branching, tail_rays=bvh.tail_rays, tail_fraction=bvh.tail_fraction)
     np.savez(work / "rays.npz", o=o, d=d)
-    t0 = time.perf_counter()
-    warm = _run_child(work, n, args.modes, ["--tool=none"], "warm")  # compiles the kernels for valgrind's CPU
-    lanes = int(warm["lanes"])
-    print(f"{args.mesh}: {len(f):,} triangles, K={args.branching}, H={args.height}; {n:,} incoherent rays; "
-          f"{lanes} lanes under valgrind (warm-up {time.perf_counter() - t0:.0f} s)", flush=True)
-    rows = []
+    print(f"{args.mesh}: {len(f):,} triangles, K={args.branching}, H={args.height}; {n:,} incoherent rays",
+          flush=True)
+    rows, lanes = [], None
     for d1 in args.d1:
-        pre = model_preset(d1, args.ll, lanes)
         t0 = time.perf_counter()
         cgs = cachegrind_misses(work, n, args.modes, d1, args.ll)
+        lanes = cgs["lanes"]  # Dr.Jit's packet width under valgrind (8: no AVX-512 there)
+        pre = model_preset(d1, args.ll, lanes)
         for mode in args.modes:
             cg, mo = cgs[mode], model_misses(bvh, o, d, n, mode, pre)
             exact = bool(np.array_equal(cg["prim"], mo["prim"]))

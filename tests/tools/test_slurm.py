@@ -170,10 +170,19 @@ def test_bad_slurm_options_get_one_line(tmp_path, args, env_path, says):
     assert not (tmp_path / "sw").exists()
 
 
-def _refused_sweep(tmp_path, env) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "layerbvh_mitsuba.cli", "sweep", str(SCENES / "cbox.xml"), "--job",
-                           "compare", "--out", str(tmp_path / "sw"), "--cluster", "slurm"],
-                          env=env, capture_output=True, text=True, timeout=90)
+def _refused_sweeps(tmp_path, envs: list[dict]) -> list[subprocess.CompletedProcess]:
+    """The sweep on SLURM under each env, run at once (each waits for sinfo to give up), each in a
+    folder of its own."""
+    procs = []
+    for i, env in enumerate(envs):
+        cmd = [sys.executable, "-m", "layerbvh_mitsuba.cli", "sweep", str(SCENES / "cbox.xml"), "--job", "compare",
+               "--out", str(tmp_path / f"sw{i}"), "--cluster", "slurm"]
+        procs.append((cmd, subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)))
+    out = []
+    for cmd, p in procs:
+        stdout, stderr = p.communicate(timeout=90)
+        out.append(subprocess.CompletedProcess(cmd, p.returncode, stdout, stderr))
+    return out
 
 
 def test_an_unreachable_controller_gets_one_line(tmp_path):
@@ -187,13 +196,13 @@ def test_an_unreachable_controller_gets_one_line(tmp_path):
     env["XDG_CACHE_HOME"] = str(tmp_path / "cache")
     if Path("/etc/slurm/slurm.conf").exists():
         pytest.skip("this machine has a SLURM configuration of its own")
-    r = _refused_sweep(tmp_path, env)
+    r, r2 = _refused_sweeps(tmp_path, [env, {**env, "SLURM_CONF": str(tmp_path / "missing.conf")}])
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 2 and len(lines) == 1, r.stderr
     assert "no SLURM controller answers (SLURM_CONF is unset;" in lines[0] and "slurm_local.sh start" in lines[0]
-    assert not (tmp_path / "sw").exists()
-    r = _refused_sweep(tmp_path, {**env, "SLURM_CONF": str(tmp_path / "missing.conf")})
-    lines = r.stderr.strip().splitlines()
-    assert r.returncode == 2 and len(lines) == 1 and f"SLURM_CONF={tmp_path / 'missing.conf'}" in lines[0], r.stderr
-    assert not (tmp_path / "sw").exists()
+    assert not (tmp_path / "sw0").exists()
+    lines = r2.stderr.strip().splitlines()
+    assert r2.returncode == 2 and len(lines) == 1 and f"SLURM_CONF={tmp_path / 'missing.conf'}; no such file" in lines[0], \
+        r2.stderr  # (said at once: sinfo would retry the missing file for the probe's 20 s)
+    assert not (tmp_path / "sw1").exists()
 

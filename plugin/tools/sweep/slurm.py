@@ -92,7 +92,9 @@ def _find_controller() -> None:
     cluster scripts/slurm_local.sh started (its slurm.conf, linked where local_cluster_conf says;
     SLURM_CONF is then set for this process, so sbatch, squeue and dask-jobqueue use it). A
     UserError saying how to get one otherwise."""
-    why = _controller_answer(dict(os.environ))
+    conf = os.environ.get("SLURM_CONF")
+    # sinfo retries a configuration file that is not there until the probe's time is up (20 s)
+    why = "no such file" if conf and not Path(conf).is_file() else _controller_answer(dict(os.environ))
     if why is None:
         return
     local = local_cluster_conf()
