@@ -368,7 +368,8 @@ def main(argv=None) -> int:
         n = copy_repository(repo, copy)
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(import_path(copy)),
                                                                           os.environ.get("PYTHONPATH")])),
-               "PYTHONDONTWRITEBYTECODE": "1", "COLUMNS": "250"}  # COLUMNS: pytest's summary lines whole
+               "PYTHONDONTWRITEBYTECODE": "1", "COLUMNS": "250",  # COLUMNS: pytest's summary lines whole
+               "LAYERBVH_VALGRIND_TEST": "1"}  # (the valgrind test, off in the suite's time budget)
         probe = subprocess.run([python, "-c", "import layerbvh, layerbvh_mitsuba, os; "
                                 "print(os.path.realpath(layerbvh.__file__)); print(os.path.realpath(layerbvh_mitsuba.__file__))"],
                                cwd=copy, env=env, capture_output=True, text=True)
