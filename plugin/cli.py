@@ -45,27 +45,40 @@ AS_PATH_HELP = ("the scene's integrator is none of path, direct, volpath, volpat
                 "it has them (without this, such a scene is refused)")
 
 
+# Options that several commands take, declared once (issue 42).
+def _scene_and_film(sp) -> None:
+    sp.add_argument("scene", help="Mitsuba 3 XML scene")
+    sp.add_argument("--res", type=int, nargs=2, metavar=("W", "H"), help="film resolution (default: the scene's)")
+
+
+def _tree(sp) -> None:
+    sp.add_argument("--leaf-size", type=int, help="triangles per BVH leaf at most (default: 4 binary, 2 wide)")
+    sp.add_argument("--branching", type=int, default=layerbvh.DEFAULT_BRANCHING,
+                    help="children per BVH node: 2 (the paper's binary BVH), 4 or 8 (default %(default)s)")
+
+
+def _session(sp) -> None:
+    sp.add_argument("--variant", default="llvm_ad_rgb",
+                    help="Mitsuba variant: any llvm_* or cuda_* (default %(default)s)")
+    sp.add_argument("--as-path", action="store_true", help=AS_PATH_HELP)
+    sp.add_argument("--no-progress", action="store_true")
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="layerbvh", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
 
     def common(sp):
-        sp.add_argument("scene", help="Mitsuba 3 XML scene")
+        _scene_and_film(sp)
         sp.add_argument("--spp", type=int, help="samples per pixel (default: the scene's)")
-        sp.add_argument("--res", type=int, nargs=2, metavar=("W", "H"), help="film resolution (default: the scene's)")
         sp.add_argument("--seed", type=int, default=0)
         sp.add_argument("--traversal", default=layerbvh.AUTO,
                         help=f"{' | '.join(CHOICES)} (embree: our loop, Mitsuba's queries: the control) "
                              f"(default %(default)s)")
         sp.add_argument("--treelet-height", type=int, default=layerbvh.DEFAULT_TREELET_HEIGHT,
                         help="levels of the BVH per treelet (default %(default)s)")
-        sp.add_argument("--leaf-size", type=int, help="triangles per BVH leaf at most (default: 4 binary, 2 wide)")
-        sp.add_argument("--branching", type=int, default=layerbvh.DEFAULT_BRANCHING,
-                        help="children per BVH node: 2 (the paper's binary BVH), 4 or 8 (default %(default)s)")
-        sp.add_argument("--variant", default="llvm_ad_rgb",
-                        help="Mitsuba variant: any llvm_* or cuda_* (default %(default)s)")
-        sp.add_argument("--as-path", action="store_true", help=AS_PATH_HELP)
-        sp.add_argument("--no-progress", action="store_true")
+        _tree(sp)
+        _session(sp)
 
     r = sub.add_parser("render", help="render with the layerbvh integrator to an EXR")
     common(r)
@@ -78,7 +91,7 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--out", required=True, help="output folder")
     v = sub.add_parser("converge", help="error against run time: stock and layerbvh configurations at 1, 2, 4, ... spp "
                                         "within a time budget, scored against a cached stock reference")
-    v.add_argument("scene", help="Mitsuba 3 XML scene")
+    _scene_and_film(v)
     v.add_argument("--budget", type=float, required=True, help="seconds of rendering per configuration "
                    "(BVH build, compile and the reference are timed separately)")
     v.add_argument("--out", required=True, help="output folder (convergence.csv/.json/.png/.md)")
@@ -87,14 +100,9 @@ def _parser() -> argparse.ArgumentParser:
                         "layer_unsorted[:H] (default %(default)s)")
     v.add_argument("--ref-spp", type=int, default=4096, help="spp of the stock reference (default %(default)s)")
     v.add_argument("--max-spp", type=int, help="stop doubling here even within budget (default ref spp / 16)")
-    v.add_argument("--res", type=int, nargs=2, metavar=("W", "H"), help="film resolution (default: the scene's)")
-    v.add_argument("--leaf-size", type=int, help="triangles per BVH leaf at most (default: 4 binary, 2 wide)")
-    v.add_argument("--branching", type=int, default=layerbvh.DEFAULT_BRANCHING,
-                   help="children per BVH node of the layerbvh configurations: 2, 4 or 8 (default %(default)s)")
+    _tree(v)
     v.add_argument("--cache", help="reference cache folder (default $XDG_CACHE_HOME/layerbvh/references)")
-    v.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant: any llvm_* or cuda_* (default %(default)s)")
-    v.add_argument("--as-path", action="store_true", help=AS_PATH_HELP)
-    v.add_argument("--no-progress", action="store_true")
+    _session(v)
     sweep.add_parser(sub)
     locality.add_parser(sub)
     return p

@@ -22,7 +22,8 @@ TRAVERSAL_OPS = 300
 def kernel_split(text: str) -> list[dict]:
     """Per (branching, height, mode) of a `gpu_check_device.py --kernels` listing: the GPU's time in
     the traversal kernels, in the stack moves (the first JIT kernel after each step's traversal
-    kernel, over the step's (lane, entry) pairs), in the sort (MkPerm, BlockPrefixReduce) and in
+    kernel, over the step's (lane, entry) pairs), in the sort (MkPerm, and argsort's prefix sums
+    between its MkPerm passes) and in
     the rest (state set-up, gathers, memsets), and the wall time the launches leave idle."""
     out, cur, prev = [], None, ""
     for line in text.splitlines():
@@ -44,9 +45,9 @@ def kernel_split(text: str) -> list[dict]:
             if typ == "JIT" and prev == "traversal":
                 cur["stack_ms"] += ms
                 prev = typ
-            elif typ in ("MkPerm", "BlockPrefixReduce"):
-                cur["sort_ms"] += ms
-                prev = typ
+            elif typ == "MkPerm" or (typ == "BlockPrefixReduce" and prev == "MkPerm"):
+                cur["sort_ms"] += ms  # (a prefix sum between two MkPerm passes is argsort's; one
+                prev = typ            # after a Compress is the ray batch's compaction: set-up)
             else:
                 cur["rest_ms"] += ms
                 prev = typ if typ == "JIT" else prev  # (the step's two counts: reductions and copies on LLVM)
