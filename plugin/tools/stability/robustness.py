@@ -17,6 +17,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -220,14 +221,20 @@ def spectral_variant(tmp: Path) -> Outcome:
       "both render, matching stock (the BVH is empty; the sphere is intersected by Mitsuba's own test)")
 def no_triangles(tmp: Path) -> Outcome:
     lines, ok = [], True
-    for name, body in (("sphere_only", '<shape type="sphere"/><emitter type="constant"/>'),
-                       ("no_shapes", '<emitter type="constant"/>')):
-        for traversal in ("per_ray", "layer_sorted"):
-            r = layerbvh("compare", scene_file(tmp, name, body), "--traversal", traversal, "--out", tmp / f"{name}_{traversal}")
-            rep = report(tmp / f"{name}_{traversal}") if r.code == 0 else {}
-            good = r.code == 0 and rep["metrics"]["frac_pixels_over_1e-3"] == 0 and rep["metrics"]["mean_ref"] > 0
-            ok &= good
-            lines.append(f"{name}/{traversal}: exit {r.code}" + ("" if good else f" {r.error_lines or r.stderr[-200:]}"))
+    runs = [(name, scene_file(tmp, name, body), traversal)
+            for name, body in (("sphere_only", '<shape type="sphere"/><emitter type="constant"/>'),
+                               ("no_shapes", '<emitter type="constant"/>'))
+            for traversal in ("per_ray", "layer_sorted")]
+    # Four independent commands, each its own process and output folder: run at once (most of
+    # each is start-up and waiting on the other).
+    with ThreadPoolExecutor(max_workers=len(runs)) as pool:
+        results = list(pool.map(lambda run: layerbvh("compare", run[1], "--traversal", run[2], "--out",
+                                                     tmp / f"{run[0]}_{run[2]}"), runs))
+    for (name, _, traversal), r in zip(runs, results):
+        rep = report(tmp / f"{name}_{traversal}") if r.code == 0 else {}
+        good = r.code == 0 and rep["metrics"]["frac_pixels_over_1e-3"] == 0 and rep["metrics"]["mean_ref"] > 0
+        ok &= good
+        lines.append(f"{name}/{traversal}: exit {r.code}" + ("" if good else f" {r.error_lines or r.stderr[-200:]}"))
     return Outcome("no_triangles", ok, "; ".join(lines))
 
 
