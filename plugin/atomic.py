@@ -41,10 +41,32 @@ def write_bytes(out, data: bytes) -> None:
         Path(tmp).write_bytes(data)
 
 
-def splice_section(path, section: str, body: str) -> None:
-    """Replace the text between `<!-- section:start -->` and `<!-- section:end -->` in `path`."""
+def section_markers(section: str) -> tuple[str, str]:
+    """The comments a generated section of a markdown file sits between."""
+    return f"<!-- {section}:start -->", f"<!-- {section}:end -->"
+
+
+def marked_lines(section: str, body: str) -> list[str]:
+    """`body` between `section`'s markers, as lines of a document (a blank one after), so the
+    section can later be regenerated alone with splice_section."""
+    start, end = section_markers(section)
+    return [start, body, end, ""]
+
+
+def read_section(path, section: str) -> str | None:
+    """The text between `section`'s markers in `path`, stripped (None: no file or no markers)."""
     path = Path(path)
-    start, end = f"<!-- {section}:start -->", f"<!-- {section}:end -->"
+    start, end = section_markers(section)
+    text = path.read_text() if path.exists() else ""
+    if start not in text or end not in text:
+        return None
+    return text[text.index(start) + len(start):text.index(end)].strip()
+
+
+def splice_section(path, section: str, body: str) -> None:
+    """Replace the text between `section`'s markers (section_markers) in `path`."""
+    path = Path(path)
+    start, end = section_markers(section)
     old = path.read_text()
     if start not in old or end not in old:
         raise ValueError(f"{path}: markers {start} / {end} not found")

@@ -43,11 +43,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # the checkout's layerbvh, also in the child
 
 MODES = ("per_ray", "layer_sorted", "layer_unsorted")
-WARM_RAYS = 4096
-PARTS = ("traversal kernels", "other kernels", "Dr.Jit runtime", "rest")
-# The walk loop compiles to thousands of instructions; set-up, gather and stack-move kernels to
-# under a few hundred.
-TRAVERSAL_INSTRUCTIONS = 1000  # rays past the 2N of the check, traced first in each child to load the kernels
+WARM_RAYS = 4096  # rays past the 2N of the check, traced first in each child to load the kernels
 LINE = 64
 D1_WAYS, LL_WAYS = 8, 16
 SECTION = "cachegrind"  # BENCHMARKS.md's markers around the section
@@ -111,18 +107,19 @@ def child(work: Path, n: int, modes: list[str], out: Path) -> None:
         # "ready", and dumps them (-d) when it says "done".
         print("ready", flush=True)
         sys.stdin.readline()
-        got = [trace(batch, mode)]
+        res = trace(batch, mode)
         dr.sync_thread()
         print("done", flush=True)
         sys.stdin.readline()
-        prims[mode] = np.asarray(got[0].prim).astype(np.int64)
+        prims[mode] = np.asarray(res.prim).astype(np.int64)
     np.savez(out, lanes=be.llvm_vector_width(), **prims)
 
 
 # -- the parent -------------------------------------------------------------------------------------------
 def _run_child(work: Path, n: int, modes: list[str], tool: list[str], tag: str, between=None) -> dict:
-    """One child under valgrind tracing n rays per mode; `between(pid, i)` is called when mode i's
-    region starts (i, "ready") and when it ends (i, "done")."""
+    """One child under valgrind tracing n rays per mode; `between(pid, i, say)` is called once the
+    child has loaded everything (-1, "loaded"), and when mode i's region starts (i, "ready") and
+    ends (i, "done")."""
     out = work / f"{tag}.npz"
     cmd = ["valgrind", "-q", *tool, sys.executable, __file__, "--child", str(work), str(n), ",".join(modes), str(out)]
     proc = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
@@ -160,8 +157,9 @@ def read_callgrind(path: Path) -> dict:
 def cachegrind_misses(work: Path, n: int, modes: list[str], d1_kib: int, ll_kib: int) -> dict:
     """Per mode: read misses per ray of tracing rays n..2n (the region of the child that traces 2n
     rays minus that of the child that traces n). The counters are zeroed when a region starts and
-    dumped when it ends (callgrind_control), so only the trace call is counted; callgrind simulates
-    the caches all along, so each region starts with the caches as the process left them."""
+    dumped when it ends (callgrind_control), so only the trace call is counted; the caches are
+    simulated from when instrumentation goes on, so each region starts with the caches as the
+    child's earlier traces left them."""
     got = {}
     for k in (n, 2 * n):
         cg = work / f"cg_{d1_kib}_{k}.out"

@@ -20,6 +20,7 @@ import drjit as dr  # noqa: E402
 import numpy as np  # noqa: E402
 
 import layerbvh  # noqa: E402
+from layerbvh import meshes  # noqa: E402
 
 MODES = ("per_ray", "layer_sorted")
 
@@ -51,7 +52,9 @@ def main(argv=None) -> int:
         for kind in model["kinds"]:
             rows = {r["mode"]: r for r in model["rows"]
                     if (r["kind"], r["branching"], r["treelet_height"]) == (kind, k, h)}
-            result.append(dict(branching=k, treelet_height=h, **_time_kind(bvh, z, kind, rows, args.runs)))
+            timed = _time_kind(bvh, z[f"{kind}_o"], z[f"{kind}_d"], z[f"{kind}_tmax"], kind == "shadow", args.runs,
+                               want=z[f"{kind}_prim"], rows=rows)
+            result.append(dict(branching=k, treelet_height=h, kind=kind, **timed))
             r = result[-1]
             print(f"{k:2} {h:3} {kind:22} {r['rays']:8,} {r['rays'] / r['seconds']['per_ray'] / 1e6:16.2f} "
                   f"{r['rays'] / r['seconds']['layer_sorted'] / 1e6:15.2f} {r['measured_sorted_over_per_ray']:26.2f} "
@@ -64,15 +67,13 @@ def main(argv=None) -> int:
     return 0
 
 
-def _time_kind(bvh, z, kind: str, rows: dict, runs: int) -> dict:
-    """One kind's rays on one tree: both modes' hits against the LLVM replay, then `runs`
-    interleaved timing rounds; the measured speed-up beside the model's DRAM ratios."""
-    o, d, tmax = z[f"{kind}_o"], z[f"{kind}_d"], z[f"{kind}_tmax"]
-    any_hit = kind == "shadow"
+def _time_kind(bvh, o, d, tmax, any_hit: bool, runs: int, want=None, rows: dict | None = None) -> dict:
+    """One set of rays on one tree: both modes' hits (against the LLVM replay's `want`, if given),
+    then `runs` interleaved timing rounds; the measured speed-up, beside the model's DRAM ratios
+    when its `rows` (per mode) are given."""
     m = bvh.m
-    O = m.Array3f(*(m.Float(np.ascontiguousarray(o[:, c])) for c in range(3)))  # on the device, as a
-    D = m.Array3f(*(m.Float(np.ascontiguousarray(d[:, c])) for c in range(3)))  # renderer passes them
-    T = m.Float(tmax)
+    O, D = meshes.device_rays(m, o, d)  # on the device, as a renderer passes them
+    T = layerbvh.from_numpy(m.Float, tmax)
 
     last = {}
 
@@ -82,7 +83,6 @@ def _time_kind(bvh, z, kind: str, rows: dict, runs: int) -> dict:
         out = q.occluded if any_hit else q.prim
         dr.eval(out)
         return out
-    want = z.get(f"{kind}_prim") if rows is not None else None
     bad, got = {}, {}
     for mode in MODES:  # warm-up (compiles) and the exactness check against the LLVM replay
         got[mode] = np.asarray(trace(mode))
@@ -98,7 +98,7 @@ def _time_kind(bvh, z, kind: str, rows: dict, runs: int) -> dict:
             dr.sync_thread()
             times[mode].append(time.perf_counter() - t0)
     med = {mode: statistics.median(t) for mode, t in times.items()}
-    r = {"kind": kind, "rays": len(o), "seconds": med, "measured_sorted_over_per_ray": med["per_ray"] / med["layer_sorted"],
+    r = {"rays": len(o), "seconds": med, "measured_sorted_over_per_ray": med["per_ray"] / med["layer_sorted"],
          "modes_disagree": int(np.count_nonzero(got["per_ray"] != got["layer_sorted"])),
          "split": {mode: {"steps": st.steps, "traverse_s": st.time_traverse_s, "stack_moves_s": st.time_other_s,
                           "sort_s": st.time_sort_s} for mode, st in last.items()}}
@@ -114,7 +114,6 @@ def _time_soup(configs, args) -> list[dict]:
     """The stress case at the GPU's own scale: incoherent rays (meshes.incoherent_rays, as the
     benchmarks make them) into a sphere soup, closest hit and any hit, at each batch size of
     --soup-rays and each (branching, height); a batch of 200k rays is too small to fill an H200."""
-    from layerbvh import meshes
     v, f = meshes.sphere_soup(max(1, args.soup // 960), 960)
     most = max(args.soup_rays)
     o_all, d_all = meshes.incoherent_rays(v, most, seed=1)
@@ -125,12 +124,9 @@ def _time_soup(configs, args) -> list[dict]:
     for k, h in configs:
         bvh = layerbvh.build(v, f, treelet_height=h, backend=args.backend, branching=k, batch_rays=most)
         for n in args.soup_rays:
-            z = {"soup_o": o_all[:n], "soup_d": d_all[:n], "soup_tmax": np.full(n, np.inf, np.float32)}
             for query in ("closest", "any"):
-                kind = "shadow" if query == "any" else "soup"
-                z["shadow_o"], z["shadow_d"], z["shadow_tmax"] = z["soup_o"], z["soup_d"], z["soup_tmax"]
-                r = _time_kind(bvh, z, kind, None, args.runs)
-                r.update(branching=k, treelet_height=h, query=query)
+                r = _time_kind(bvh, o_all[:n], d_all[:n], np.full(n, np.inf, np.float32), query == "any", args.runs)
+                r.update(kind="soup", branching=k, treelet_height=h, query=query)
                 out.append(r)
                 print(f"{k:2} {h:3} {query:8} {n:10,} {n / r['seconds']['per_ray'] / 1e6:16.2f} "
                       f"{n / r['seconds']['layer_sorted'] / 1e6:15.2f} {r['measured_sorted_over_per_ray']:26.2f}  "
@@ -146,16 +142,13 @@ def _kernel_history(configs, args) -> int:
     """Where a trace's GPU time goes: each kernel launch of one closest-hit trace of --kernels soup
     rays, per mode and (branching, height), with its width and its execution time as Dr.Jit's
     kernel history records it (the warm-up trace first, so nothing is compiled in the listing)."""
-    from layerbvh import meshes
     v, f = meshes.sphere_soup(max(1, args.soup // 960), 960)
     n = args.kernels
     o, d = meshes.incoherent_rays(v, n, seed=1)
     print(f"sphere soup, {len(f):,} triangles, {n:,} incoherent closest-hit rays ({args.backend})")
     for k, h in configs:
         bvh = layerbvh.build(v, f, treelet_height=h, backend=args.backend, branching=k, batch_rays=n)
-        m = bvh.m
-        O = m.Array3f(*(m.Float(np.ascontiguousarray(o[:, c])) for c in range(3)))
-        D = m.Array3f(*(m.Float(np.ascontiguousarray(d[:, c])) for c in range(3)))
+        O, D = meshes.device_rays(bvh.m, o, d)
         for mode in MODES:
             dr.eval(bvh.trace(O, D, None, mode=mode, stats=False).prim)
             dr.sync_thread()

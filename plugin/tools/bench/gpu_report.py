@@ -124,7 +124,7 @@ def section(folder: Path) -> str:
 
 def block(folder: Path) -> list[str]:
     """The section between its markers, for report.py's whole document."""
-    return [f"<!-- {GPU_SECTION}:start -->", section(folder), f"<!-- {GPU_SECTION}:end -->", ""]
+    return atomic.marked_lines(GPU_SECTION, section(folder))
 
 
 def main(argv=None) -> int:

@@ -310,16 +310,13 @@ KEPT_SECTIONS = ("cachegrind",)
 
 def kept_section(path: Path, name: str) -> str | None:
     """The section `name` of the document at `path`, markers included (None: not there)."""
-    text = path.read_text() if path.exists() else ""
-    start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
-    if start not in text or end not in text:
-        return None
-    return text[text.index(start):text.index(end) + len(end)] + "\n"
+    body = atomic.read_section(path, name)
+    return None if body is None else "\n".join(atomic.marked_lines(name, body))
 
 
 def locality_block(doc: dict, fig_dir: str) -> list[str]:
-    """The locality section between its markers (so it can be regenerated alone)."""
-    return [f"<!-- {LOCALITY_SECTION}:start -->", benchmarks_section(doc, fig_dir), f"<!-- {LOCALITY_SECTION}:end -->", ""]
+    """The locality section between its markers."""
+    return atomic.marked_lines(LOCALITY_SECTION, benchmarks_section(doc, fig_dir))
 
 
 def document(bench: list[dict], scaling: dict | None, fig_dir: str, converge: list[str] | None = None,

@@ -221,10 +221,10 @@ def spectral_variant(tmp: Path) -> Outcome:
       "both render, matching stock (the BVH is empty; the sphere is intersected by Mitsuba's own test)")
 def no_triangles(tmp: Path) -> Outcome:
     lines, ok = [], True
-    runs = [(name, scene_file(tmp, name, body), traversal)
-            for name, body in (("sphere_only", '<shape type="sphere"/><emitter type="constant"/>'),
-                               ("no_shapes", '<emitter type="constant"/>'))
-            for traversal in ("per_ray", "layer_sorted")]
+    scenes = {name: scene_file(tmp, name, body)
+              for name, body in (("sphere_only", '<shape type="sphere"/><emitter type="constant"/>'),
+                                 ("no_shapes", '<emitter type="constant"/>'))}
+    runs = [(name, scene, traversal) for name, scene in scenes.items() for traversal in ("per_ray", "layer_sorted")]
     # Four independent commands, each its own process and output folder: run at once (most of
     # each is start-up and waiting on the other).
     with ThreadPoolExecutor(max_workers=len(runs)) as pool:
