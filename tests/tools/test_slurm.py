@@ -60,38 +60,19 @@ def _jobs(env, state="") -> list[str]:
     return [ln.split()[0] for ln in r.stdout.splitlines() if ln.strip() and (not state or ln.split()[1] == state)]
 
 
-def test_sweep_on_slurm_matches_a_local_cluster(slurm, tmp_path):
-    """Two scenes x two traversals through SLURM jobs: every point ok, the same verdicts and
-    metrics as the same sweep on a local cluster, the job script next to the results. The SLURM
-    sweep runs without SLURM_CONF: it finds the cluster slurm_local.sh started by the link that
-    script leaves (issue 39: nothing to source)."""
-    unsourced = {k: v for k, v in slurm.items() if k != "SLURM_CONF"}
-    on_slurm = _sweep(tmp_path / "slurm", "--cluster", "slurm", "--slurm-jobs", "1", "--slurm-cores", "2",
-                      "--slurm-memory", "6", "--slurm-walltime", "00:10:00", env=unsourced)
-    local = _sweep(tmp_path / "local", "--workers", "2", env=slurm)
-    errs = []
-    for p in (on_slurm, local):
-        _, err = p.communicate(timeout=400)
-        assert p.returncode == 0, err
-        errs.append(err)
-    assert f"SLURM_CONF={Path(slurm['SLURM_CONF']).resolve()}" in errs[0], errs[0]
-    a, b = _rows(tmp_path / "slurm"), _rows(tmp_path / "local")
-    assert len(a) == len(b) == 4 and all(r["status"] == "ok" for r in a + b)
-    for ra, rb in zip(sorted(a, key=lambda r: r["key"]), sorted(b, key=lambda r: r["key"])):
-        assert ra["key"] == rb["key"]
-        for k in ("verdict", "within_1e-3", "rmse", "max_abs"):
-            assert ra[k] == rb[k], (k, ra[k], rb[k])
-    script = (tmp_path / "slurm" / "slurm_job.sh").read_text()
-    assert "#SBATCH -t 00:10:00" in script and "--cpus-per-task=2" in script and "exclusive=1" in script
-    assert not _jobs(slurm), "the sweep left SLURM jobs behind"
-
-
-def test_a_job_cancelled_mid_sweep_loses_nothing(slurm, tmp_path):
-    """Two one-core jobs; one is cancelled with scancel while points run. The sweep ends with every
-    point stored once, ok or failed; a resume runs exactly the ones that were not ok."""
+def test_a_cancelled_job_loses_nothing_and_the_table_matches_a_local_cluster(slurm, tmp_path):
+    """Two scenes x two traversals through two one-core SLURM jobs, one cancelled with scancel
+    while points run: the sweep ends with every point stored once, ok or failed. A resume runs
+    exactly the ones that were not ok, without SLURM_CONF: it finds the cluster slurm_local.sh
+    started by the link that script leaves (issue 39: nothing to source). Then every point is ok,
+    with the same verdicts and metrics as the same sweep on a local cluster (run beside the first
+    SLURM sweep), and the job script is next to the results. (One test, not two: each SLURM sweep
+    costs 15-45 s of a 10-minute suite.)"""
     out = tmp_path / "sw"
+    res = ("--res", "48", "48")  # points long enough for the cancel to land while they run
     p = _sweep(out, "--cluster", "slurm", "--slurm-jobs", "2", "--slurm-cores", "1", "--slurm-memory", "4",
-               "--res", "48", "48", env=slurm)
+               "--slurm-walltime", "00:10:00", *res, env=slurm)
+    local = _sweep(tmp_path / "local", "--workers", "1", *res, env=slurm)
     t0 = time.monotonic()
     while len(_jobs(slurm, "RUNNING")) < 2 and time.monotonic() - t0 < 120:
         time.sleep(0.5)
@@ -99,7 +80,9 @@ def test_a_job_cancelled_mid_sweep_loses_nothing(slurm, tmp_path):
     assert len(running) == 2, "the two worker jobs did not start"
     time.sleep(4)  # both workers have taken a point
     subprocess.run(["scancel", running[0]], env=slurm, check=True, timeout=30)
-    _, err = p.communicate(timeout=400)
+    p.communicate(timeout=400)
+    script = (out / "slurm_job.sh").read_text()
+    assert "#SBATCH -t 00:10:00" in script and "--cpus-per-task=1" in script and "exclusive=1" in script
     rows = _rows(out)
     assert len(rows) == 4 and len({r["key"] for r in rows}) == 4
     ok = [r for r in rows if r["status"] == "ok"]
@@ -107,12 +90,22 @@ def test_a_job_cancelled_mid_sweep_loses_nothing(slurm, tmp_path):
     ran = [k for run in runs["runs"] for k in run.get("ran", [])] if "runs" in runs else None
     if ran is not None:
         assert len(ran) == len(set(ran)), "a point was counted twice"
-    again = _sweep(out, "--cluster", "slurm", "--slurm-jobs", "1", "--slurm-cores", "2", "--slurm-memory", "6",
-                   "--res", "48", "48", env=slurm)
+    unsourced = {k: v for k, v in slurm.items() if k != "SLURM_CONF"}
+    again = _sweep(out, "--cluster", "slurm", "--slurm-jobs", "1", "--slurm-cores", "2", "--slurm-memory", "6", *res,
+                   env=unsourced)
     out_text, err = again.communicate(timeout=400)
     assert again.returncode == 0, err
     assert f"reused {len(ok)}" in out_text and f"ran {4 - len(ok)}," in out_text, out_text
-    assert all(r["status"] == "ok" for r in _rows(out))
+    assert f"SLURM_CONF={Path(slurm['SLURM_CONF']).resolve()}" in err, err
+    _, err = local.communicate(timeout=400)
+    assert local.returncode == 0, err
+    a, b = _rows(out), _rows(tmp_path / "local")
+    assert len(a) == len(b) == 4 and all(r["status"] == "ok" for r in a + b)
+    for ra, rb in zip(sorted(a, key=lambda r: r["key"]), sorted(b, key=lambda r: r["key"])):
+        assert ra["key"] == rb["key"]
+        for k in ("verdict", "within_1e-3", "rmse", "max_abs"):
+            assert ra[k] == rb[k], (k, ra[k], rb[k])
+    assert not _jobs(slurm), "the sweep left SLURM jobs behind"
 
 
 def test_walltime_shorter_than_a_point_names_it(slurm, tmp_path):

@@ -291,11 +291,11 @@ def one_run_per_folder(tmp: Path) -> Outcome:
                                              f"{consistent}; unrelated folder: {line}")
 
 
-@case("converge_no_wild_reads", "converge on the Cornell box at 32x32 with a 10 s budget and a 256-spp reference",
+@case("converge_no_wild_reads", "converge on the Cornell box at 32x32 with a 5 s budget and a 256-spp reference",
       "no ratio read from a fit with log-log R² < 0.9 or further than 2x outside the rendered times: n/a with the "
       "reason")
 def converge_no_wild_reads(tmp: Path) -> Outcome:
-    r = layerbvh("converge", SCENES / "cbox.xml", "--budget", "10", "--res", "32", "32", "--ref-spp", "256",
+    r = layerbvh("converge", SCENES / "cbox.xml", "--budget", "5", "--res", "32", "32", "--ref-spp", "256",
                  "--cache", tmp / "cache", "--out", tmp / "conv")
     if r.code != 0:
         return Outcome("converge_no_wild_reads", False, f"exit {r.code}: {r.stderr[-300:]}")
