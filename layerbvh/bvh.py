@@ -11,7 +11,8 @@ from .auto import AUTO, AutoPolicy
 from .inputs import (DEFAULT_BRANCHING, DEFAULT_TREELET_HEIGHT, RayBatch, check_mesh, check_param, default_leaf_size,
                      ray_batch)
 from .instances import Group, Instance, InstancedParts, check_instanced, check_instances, instanced_layout
-from .layout import LayerLayout, check_layout, load_builder_kernels, to_layer_layout
+from .layout import LayerLayout, check_layout
+from .relayout import load_builder_kernels, to_layer_layout
 from .sah import BinaryBVH, build_binned_sah, triangle_bounds
 from .state import MISS, Results
 from .stats import BVHStats, TraceStats

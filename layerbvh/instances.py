@@ -8,7 +8,8 @@ import numpy as np
 from .inputs import check_mesh
 from .layout import (EXIT_BIT, INST_FLOATS, INST_GROUP, INST_ROOT, INST_TO_OBJECT, INSTANCE_TAG, LEAF_BIT,
                      LEAF_FIRST, LEAF_FIRST_MASK, LEAF_UINTS, LEAVE, MAX_INSTANCES, MAX_TRIANGLES,
-                     PAYLOAD_MASK, TRI_FLOATS, LayerLayout, check_layout, to_layer_layout)
+                     PAYLOAD_MASK, TRI_FLOATS, LayerLayout, check_layout)
+from .relayout import to_layer_layout
 from .sah import build_binned_sah, triangle_bounds
 
 # An instance whose linear part has a larger condition number than this is refused: its

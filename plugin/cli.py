@@ -23,18 +23,11 @@ from layerbvh_mitsuba.ab.compare import (
     ours_props,
     wrapped,
 )
-from layerbvh_mitsuba.ab.render import (
-    UserError,
-    load_integrator,
-    load_scene,
-    path_settings,
-    render_passes,
-    scene_spp,
-    use_variant,
-    write_exr,
-)
+from layerbvh_mitsuba.ab.render import (UserError, load_integrator, load_scene, render_passes, scene_spp, use_variant,
+    write_exr)
+from layerbvh_mitsuba.ab.scene_integrator import path_settings
 from layerbvh_mitsuba.ab.report import REPORT_MARKER, heatmap_png, write_comparison
-from layerbvh_mitsuba.runtime.adapter import UnsupportedShapeError
+from layerbvh_mitsuba.runtime.scene_geometry import UnsupportedShapeError
 from layerbvh_mitsuba.runtime.settings import CHOICES, Traversal, check_settings
 from layerbvh_mitsuba.tools import converge
 from layerbvh_mitsuba.tools.bench import locality

@@ -10,12 +10,19 @@ from pathlib import Path
 
 import pytest
 
-import layerbvh
 from layerbvh_mitsuba import atomic
-from layerbvh_mitsuba.testing import ABResult, run_check
 
-TRAVERSALS = layerbvh.TRACE_MODES  # the engine modes (the embree control is not a check of ours)
+# Nothing heavy is imported here: pytest loads this plugin in every run of a user's environment,
+# and Mitsuba, Dr.Jit and numba load only when a check, its marker or our traversal option is used
+# (issue 42: the import cost 1.1 s warm, 14.6 s the first time, and broke pytest where Mitsuba
+# cannot be imported).
 RECORDS = "records"  # DIR/records/<test>.json, one per check: the summary is built from them
+
+
+def traversals() -> tuple[str, ...]:
+    """The engine modes a check can render in (the embree control is not a check of ours)."""
+    import layerbvh  # local: the engine (Dr.Jit, numba) loads only when a check or the option asks
+    return layerbvh.TRACE_MODES
 
 
 def pytest_addoption(parser):
@@ -23,8 +30,8 @@ def pytest_addoption(parser):
     g.addoption("--layerbvh-results", metavar="DIR", help="keep the compare page of every failing check in "
                 "DIR/<test>/, and write DIR/index.html and DIR/summary.json across the run")
     g.addoption("--layerbvh-keep-all", action="store_true", help="keep the pages of passing checks too")
-    g.addoption("--layerbvh-traversal", metavar="MODE", help=f"render every check in MODE ({', '.join(TRAVERSALS)}), "
-                "or 'all' to run each check once per mode")
+    g.addoption("--layerbvh-traversal", metavar="MODE", help="render every check in MODE (a layerbvh trace mode: "
+                "layerbvh.TRACE_MODES), or 'all' to run each check once per mode")
     g.addoption("--layerbvh-variant", metavar="V", default="llvm_ad_rgb", help="Mitsuba variant (default llvm_ad_rgb)")
     g.addoption("--layerbvh-no-cache", action="store_true", help="render stock again instead of reading its cache")
 
@@ -34,14 +41,14 @@ def pytest_configure(config):
                             "layerbvh_ab fixture's arguments (the test body may use the returned result as "
                             "`layerbvh_result`)")
     mode = config.getoption("--layerbvh-traversal")
-    if mode is not None and mode not in TRAVERSALS + ("all",):
-        raise pytest.UsageError(f"--layerbvh-traversal must be one of {', '.join(TRAVERSALS)} or all, got {mode!r}")
+    if mode is not None and mode != "all" and mode not in traversals():
+        raise pytest.UsageError(f"--layerbvh-traversal must be one of {', '.join(traversals())} or all, got {mode!r}")
 
 
 def pytest_generate_tests(metafunc):
     checks = "layerbvh_ab" in metafunc.fixturenames or metafunc.definition.get_closest_marker("layerbvh_compare")
     if metafunc.config.getoption("--layerbvh-traversal") == "all" and checks:
-        metafunc.parametrize("layerbvh_traversal", TRAVERSALS)
+        metafunc.parametrize("layerbvh_traversal", traversals())
 
 
 @pytest.fixture
@@ -61,7 +68,8 @@ def _slug(nodeid: str) -> str:
     return f"{name}-{hashlib.sha256(nodeid.encode()).hexdigest()[:8]}"
 
 
-def _record(config, nodeid: str, result: ABResult) -> None:
+def _record(config, nodeid: str, result) -> None:
+    """Keep one check's record (result: testing.ABResult) for the run's summary."""
     out = _results_dir(config)
     if out is None:
         return
@@ -80,10 +88,11 @@ def layerbvh_ab(request, layerbvh_traversal):
     side only; `params`: the scene's $parameters), same seed, and assert the two-step verdict
     (same paths, or agreement within Monte Carlo noise at independent seeds). Returns the
     ABResult; raises an AssertionError with one readable paragraph when the verdict fails."""
+    from layerbvh_mitsuba.testing import run_check  # local: Mitsuba loads when a test asks for a check
     config = request.config
     calls = []
 
-    def check(scene, spp=16, res=(64, 64), traversal="auto", seed=0, ours=None, **params) -> ABResult:
+    def check(scene, spp=16, res=(64, 64), traversal="auto", seed=0, ours=None, **params):
         __tracebackhide__ = True  # a failure shows the user's line and the message, not ours
         mode = layerbvh_traversal or traversal
         out = _results_dir(config)

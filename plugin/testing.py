@@ -9,7 +9,8 @@ import numpy as np
 from layerbvh_mitsuba.ab import metrics
 from layerbvh_mitsuba.ab.compare import CompareSettings, Comparison, compare, ours_props as ours_props_of
 from layerbvh_mitsuba.ab.metrics import SAME_SEED_MAX_MEAN_REL, SAME_SEED_MIN_FRAC, SAME_SEED_TOL, same_seed_verdict
-from layerbvh_mitsuba.ab.render import load_scene, path_settings, use_variant, write_exr
+from layerbvh_mitsuba.ab.render import load_scene, use_variant, write_exr
+from layerbvh_mitsuba.ab.scene_integrator import path_settings
 from layerbvh_mitsuba.ab.report import write_comparison
 from layerbvh_mitsuba.ab.verdict import StatisticalStep, Verdict, independent_seed_test
 from layerbvh_mitsuba.runtime.cache import cache_dir

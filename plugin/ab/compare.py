@@ -13,16 +13,9 @@ import numpy as np
 import layerbvh
 from layerbvh_mitsuba.ab import metrics
 from layerbvh_mitsuba.ab.page import split_share
-from layerbvh_mitsuba.ab.render import (
-    PathSettings,
-    TimedRender,
-    check_memory,
-    load_integrator,
-    load_scene,
-    path_settings,
-    scene_spp,
-    timed_render,
-)
+from layerbvh_mitsuba.ab.render import TimedRender, load_integrator, load_scene, scene_spp, timed_render
+from layerbvh_mitsuba.ab.memory import check_memory
+from layerbvh_mitsuba.ab.scene_integrator import PathSettings, path_settings
 from layerbvh_mitsuba.ab.stock_cache import cached_stock
 from layerbvh_mitsuba.ab.verdict import Verdict, judge, load_modified, same_seed_only
 from layerbvh_mitsuba.runtime.settings import EMBREE, Traversal

@@ -10,14 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from layerbvh_mitsuba import atomic
-from layerbvh_mitsuba.ab.render import (
-    load_integrator,
-    read_exr,
-    referenced_file,
-    render_passes,
-    substituted,
-    write_exr,
-)
+from layerbvh_mitsuba.ab.render import load_integrator, read_exr, render_passes, write_exr
+from layerbvh_mitsuba.ab.scene_integrator import referenced_file, substituted
 
 
 class SceneFilesError(ValueError):

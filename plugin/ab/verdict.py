@@ -9,7 +9,7 @@ import numpy as np
 
 from layerbvh_mitsuba.ab import metrics
 from layerbvh_mitsuba.ab.render import load_integrator, load_scene
-from layerbvh_mitsuba.runtime.adapter import sensor_medium
+from layerbvh_mitsuba.runtime.scene_geometry import sensor_medium
 from layerbvh_mitsuba.runtime.stats import RenderStats
 
 # Seeds of the statistical step's two renders: apart, so stock's and ours' samples are independent.

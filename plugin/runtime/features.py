@@ -6,7 +6,7 @@ from dataclasses import dataclass, fields
 import mitsuba as mi
 
 import layerbvh
-from layerbvh_mitsuba.runtime.adapter import sensor_medium
+from layerbvh_mitsuba.runtime.scene_geometry import sensor_medium
 
 
 @dataclass(frozen=True)

@@ -1,23 +1,27 @@
-"""Our integrators registered with Mitsuba, once per JIT variant: `layerbvh` (the path tracer), `layerbvh_direct` (direct illumination), `layerbvh_volpath` and `layerbvh_volpathmis` (volumetric path tracing)."""
+"""Our integrators registered with Mitsuba, once per JIT variant: `layerbvh` (path), `layerbvh_direct`, `layerbvh_volpath`, `layerbvh_volpathmis` and `layerbvh_depth`, each the render driver given one estimator."""
 from __future__ import annotations
 
 import mitsuba as mi
 
-from layerbvh_mitsuba.runtime.direct import LayerBVHDirect
-from layerbvh_mitsuba.runtime.integrator import LayerBVHPathTracer
-from layerbvh_mitsuba.runtime.volpath import LayerBVHVolPath
-from layerbvh_mitsuba.runtime.volpathmis import LayerBVHVolPathMIS
+from layerbvh_mitsuba.runtime.driver import LayerBVHIntegrator
+from layerbvh_mitsuba.runtime.estimators.depth import DepthEstimator
+from layerbvh_mitsuba.runtime.estimators.direct import DirectEstimator
+from layerbvh_mitsuba.runtime.estimators.path import PathEstimator
+from layerbvh_mitsuba.runtime.estimators.volpath import VolPathEstimator
+from layerbvh_mitsuba.runtime.estimators.volpathmis import VolPathMISEstimator
 
-# Plugin name -> (the Mitsuba class's name, the Python class whose methods it takes).
-PLUGINS = {"layerbvh": ("LayerBVHIntegrator", LayerBVHPathTracer),
-           "layerbvh_direct": ("LayerBVHDirectIntegrator", LayerBVHDirect),
-           "layerbvh_volpath": ("LayerBVHVolPathIntegrator", LayerBVHVolPath),
-           "layerbvh_volpathmis": ("LayerBVHVolPathMISIntegrator", LayerBVHVolPathMIS)}
-# Mitsuba's integrators ours stand in for, by plugin name.
-STANDS_IN_FOR = {"path": "layerbvh", "direct": "layerbvh_direct", "volpath": "layerbvh_volpath",
-                 "volpathmis": "layerbvh_volpathmis"}
+# Plugin name -> (the Mitsuba class's name, its estimator). One line per estimator.
+PLUGINS = {"layerbvh": ("LayerBVHIntegrator", PathEstimator),
+           "layerbvh_direct": ("LayerBVHDirectIntegrator", DirectEstimator),
+           "layerbvh_volpath": ("LayerBVHVolPathIntegrator", VolPathEstimator),
+           "layerbvh_volpathmis": ("LayerBVHVolPathMISIntegrator", VolPathMISEstimator),
+           "layerbvh_depth": ("LayerBVHDepthIntegrator", DepthEstimator)}
+# Mitsuba's integrators ours stand in for, by plugin name (each estimator names the one it mirrors).
+STANDS_IN_FOR = {estimator.PLUGIN: plugin for plugin, (_, estimator) in PLUGINS.items()}
 
 _classes: dict[tuple[str, str], type] = {}
+# The driver's own attributes, given to each variant's class (not its __dict__ and __weakref__ slots).
+_DRIVER = {k: v for k, v in vars(LayerBVHIntegrator).items() if k not in ("__dict__", "__weakref__")}
 
 
 def handles_media(estimator: str) -> bool:
@@ -31,20 +35,19 @@ def is_jit_variant(variant: str | None) -> bool:
 
 def integrator_class(plugin: str = "layerbvh") -> type:
     """Our integrator `plugin` as a class of the active variant: that variant's
-    mi.SamplingIntegrator with the Python class's methods (Mitsuba's base classes exist once per
-    variant, and nanobind classes take a single base); `_base` is that SamplingIntegrator."""
+    mi.SamplingIntegrator with the driver's methods (Mitsuba's base classes exist once per
+    variant, and nanobind classes take a single base, so the driver cannot be a second base),
+    its estimator as `ESTIMATOR`; `_base` is that SamplingIntegrator."""
     variant = mi.variant()
     if not is_jit_variant(variant):
         raise ValueError(f"the {plugin} integrator needs a JIT variant (llvm_* or cuda_*); the active variant is "
                          f"{variant}")
     cls = _classes.get((plugin, variant))
     if cls is None:
-        name, py_cls = PLUGINS[plugin]
-        methods = {}
-        for klass in reversed(py_cls.__mro__[:-1]):  # base classes first, so subclasses override
-            methods.update({k: v for k, v in vars(klass).items() if k not in ("__dict__", "__weakref__")})
+        name, estimator = PLUGINS[plugin]
         base = mi.SamplingIntegrator
-        cls = _classes[(plugin, variant)] = type(name, (base,), {**methods, "_base": base})
+        cls = _classes[(plugin, variant)] = type(name, (base,), {**_DRIVER, "_base": base, "ESTIMATOR": estimator,
+                                                                 "PLUGIN": plugin})
     return cls
 
 

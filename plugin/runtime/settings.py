@@ -43,16 +43,28 @@ class Traversal:
         return self.name
 
 
-def check_settings(max_depth: int, rr_depth: int, treelet_height: int, leaf_size: int | None, batch_rays: int,
-                   branching: int = layerbvh.DEFAULT_BRANCHING) -> None:
-    """The integrator's rules for its numeric properties (the CLI and converge check the same
-    way): a ValueError naming the property and what it must be."""
+def check_depths(max_depth: int, rr_depth: int) -> None:
+    """The path estimators' rules for their depths (stock's): a ValueError naming the property."""
     if max_depth < -1:
         raise ValueError(f"max_depth must be -1 (infinite) or >= 0, got {max_depth}")
     if rr_depth <= 0:
         raise ValueError(f"rr_depth must be > 0, got {rr_depth}")
+
+
+def check_traversal_settings(treelet_height: int, leaf_size: int | None, batch_rays: int,
+                             branching: int = layerbvh.DEFAULT_BRANCHING) -> None:
+    """The render driver's rules for the traversal's properties: a ValueError naming the property
+    and what it must be."""
     layerbvh.check_param("treelet_height", treelet_height)
     if leaf_size is not None:  # None: the branching's default (layerbvh.default_leaf_size)
         layerbvh.check_param("leaf_size", leaf_size)
     layerbvh.check_param("batch_rays", batch_rays)
     layerbvh.check_param("branching", branching)
+
+
+def check_settings(max_depth: int, rr_depth: int, treelet_height: int, leaf_size: int | None, batch_rays: int,
+                   branching: int = layerbvh.DEFAULT_BRANCHING) -> None:
+    """Every rule for the integrator's numeric properties (the CLI and converge check the same
+    way as the estimator and the driver): a ValueError naming the property and what it must be."""
+    check_depths(max_depth, rr_depth)
+    check_traversal_settings(treelet_height, leaf_size, batch_rays, branching)

@@ -17,7 +17,8 @@ from tqdm import tqdm
 import layerbvh
 from layerbvh_mitsuba import atomic
 from layerbvh_mitsuba.ab import metrics
-from layerbvh_mitsuba.ab.render import PathSettings, load_integrator, load_scene, path_settings, timed_render
+from layerbvh_mitsuba.ab.render import load_integrator, load_scene, timed_render
+from layerbvh_mitsuba.ab.scene_integrator import PathSettings, path_settings
 from layerbvh_mitsuba.ab.stock_cache import cached_stock
 from layerbvh_mitsuba.runtime.cache import cache_dir
 from layerbvh_mitsuba.runtime.settings import CHOICES, EMBREE, Traversal

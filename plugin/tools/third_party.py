@@ -45,13 +45,15 @@ from layerbvh_mitsuba import atomic
 from layerbvh_mitsuba.ab import embree
 from layerbvh_mitsuba.ab.compare import STOCK, CompareSettings, ComparisonFailed, compare
 from layerbvh_mitsuba.ab.metrics import SAME_PATHS
-from layerbvh_mitsuba.ab.render import UserError, load_scene, path_settings, use_variant
+from layerbvh_mitsuba.ab.render import UserError, load_scene, use_variant
+from layerbvh_mitsuba.ab.scene_integrator import path_settings
 from layerbvh_mitsuba.repo import ROOT
-from layerbvh_mitsuba.runtime.adapter import UnsupportedShapeError
+from layerbvh_mitsuba.runtime.scene_geometry import UnsupportedShapeError
 from layerbvh_mitsuba.runtime.features import scene_media
 from layerbvh_mitsuba.runtime.registry import handles_media
 from layerbvh_mitsuba.runtime.settings import Traversal
-from layerbvh_mitsuba.tools.sweep.grid import Limits, make_points, run_sweep
+from layerbvh_mitsuba.tools.sweep.runner import Limits, run_sweep
+from layerbvh_mitsuba.tools.sweep.store import make_points
 
 # The scenes of the task (PROVENANCE.md of shared/assets), as globs relative to --root.
 DEFAULT_SCENES = (

@@ -13,7 +13,7 @@ import pytest
 import layerbvh
 import layerbvh_mitsuba  # noqa: F401  (registers the integrator)
 from layerbvh_mitsuba import testing
-from layerbvh_mitsuba.ab.render import path_props
+from layerbvh_mitsuba.ab.scene_integrator import path_props
 
 STAIRCASE = Path(__file__).resolve().parents[2] / "scenes" / "staircase2" / "scene.xml"  # 21 shapes, max_depth 65
 RES, SPP = (48, 27), 4  # 5,184 rays per pass
@@ -85,7 +85,7 @@ import json, sys
 import mitsuba as mi
 import layerbvh_mitsuba
 from layerbvh_mitsuba import testing
-from layerbvh_mitsuba.ab.render import path_props
+from layerbvh_mitsuba.ab.scene_integrator import path_props
 scene = testing.load(sys.argv[1], (48, 27))
 integ = mi.load_dict({"type": "layerbvh", "traversal": "auto", **path_props(mi, scene)})
 tracer = integ.tracer(scene)

@@ -24,16 +24,16 @@ import gc, sys
 import mitsuba as mi
 mi.set_variant("llvm_ad_rgb")
 from layerbvh_mitsuba.runtime import registry
-from layerbvh_mitsuba.runtime.volpath import LayerBVHVolPath
+from layerbvh_mitsuba.runtime.estimators.media import MediaWalk
 
 walks, collect_at = [0], [None]
-walk = LayerBVHVolPath._shadow_walk
+walk = MediaWalk.shadow_walk
 def counted_walk(self, *args, **kwargs):
     walks[0] += 1
     if walks[0] == collect_at[0] and gc.isenabled():
         print("collected mid-recording:", gc.collect())
     return walk(self, *args, **kwargs)
-LayerBVHVolPath._shadow_walk = counted_walk
+MediaWalk.shadow_walk = counted_walk
 registry.register()
 
 def render(scene):

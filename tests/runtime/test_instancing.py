@@ -9,10 +9,11 @@ import numpy as np
 import pytest
 
 import layerbvh_mitsuba  # noqa: F401  (registers the integrator)
-from layerbvh_mitsuba.runtime import adapter
+from layerbvh_mitsuba.runtime import scene_geometry
 from layerbvh_mitsuba import testing
 from layerbvh_mitsuba.ab import metrics
-from layerbvh_mitsuba.runtime.adapter import MAX_PER_SHAPE_TESTS, SceneTracer, UnsupportedShapeError
+from layerbvh_mitsuba.runtime.adapter import SceneTracer
+from layerbvh_mitsuba.runtime.scene_geometry import MAX_PER_SHAPE_TESTS, UnsupportedShapeError
 
 SCENES = Path(__file__).resolve().parents[2] / "scenes"
 BUNNY_TRIANGLES = 69_451
@@ -122,7 +123,7 @@ def test_memory_grows_with_unique_geometry():
 
 def test_nested_instancing_is_refused_by_name(monkeypatch):
     """Mitsuba 3.9 refuses a shapegroup holding an instance at load time, so no scene we are
-    given can hold one; our own refusal (adapter.collect_geometry), there should a later Mitsuba
+    given can hold one; our own refusal (scene_geometry.collect_geometry), there should a later Mitsuba
     allow it, is exercised by showing the adapter a shapegroup whose children include an
     instance (and one that includes a shapegroup)."""
     with pytest.raises(RuntimeError, match="Nested instancing is not permitted"):
@@ -132,11 +133,11 @@ def test_nested_instancing_is_refused_by_name(monkeypatch):
                                     "inst": {"type": "instance", "shapegroup": {"type": "ref", "id": "grp"}}}))
     SceneTracer(scene, "per_ray")  # as loaded: one level of instancing, traced
     inst = next(sh for sh in scene.shapes() if sh.class_name() == "Instance")
-    group = next(obj for _, obj in adapter._children(scene) if adapter._is_shapegroup(obj))
-    real = adapter._children
+    group = next(obj for _, obj in scene_geometry._children(scene) if scene_geometry._is_shapegroup(obj))
+    real = scene_geometry._children
     for nested, what in ((inst, r"Instance 'inst'"), (group, r"ShapeGroup\w* 'grp'")):
-        monkeypatch.setattr(adapter, "_children", lambda obj, nested=nested: real(obj) + [("nested", nested)]
-                            if adapter._is_shapegroup(obj) else real(obj))
+        monkeypatch.setattr(scene_geometry, "_children", lambda obj, nested=nested: real(obj) + [("nested", nested)]
+                            if scene_geometry._is_shapegroup(obj) else real(obj))
         with pytest.raises(UnsupportedShapeError, match=rf"{what} in shapegroup 'grp': nested instancing is not supported"):
             SceneTracer(scene, "per_ray")
 

@@ -9,7 +9,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from layerbvh_mitsuba.ab.render import path_settings, use_variant
+from layerbvh_mitsuba.ab.render import use_variant
+from layerbvh_mitsuba.ab.scene_integrator import path_settings
 
 MEDIA = Path(__file__).resolve().parents[2] / "scenes" / "media"
 # The scenes by their test names, and the integrator each file states (its name's suffix).

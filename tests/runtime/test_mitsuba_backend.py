@@ -10,7 +10,7 @@ import pytest
 import layerbvh_mitsuba  # noqa: F401  (registers the integrator)
 from layerbvh_mitsuba import testing
 from layerbvh_mitsuba.ab import metrics
-from layerbvh_mitsuba.runtime.adapter import UnsupportedShapeError
+from layerbvh_mitsuba.runtime.scene_geometry import UnsupportedShapeError
 from layerbvh_mitsuba.runtime.settings import Traversal
 
 SCENES = Path(__file__).resolve().parents[2] / "scenes"
@@ -81,7 +81,7 @@ def test_integrator_from_xml_and_stats():
             <translate z="-1.5"/><scale value="4"/></transform></shape>
         <emitter type="constant"/></scene>""")
     integ = scene.integrator()
-    assert integ.max_depth == 4 and integ.traversal == Traversal("layer_sorted") and integ.treelet_height == 3
+    assert integ.estimator.max_depth == 4 and integ.traversal == Traversal("layer_sorted") and integ.treelet_height == 3
     img = np.array(mi.render(scene))
     assert np.isfinite(img).all() and img.mean() > 0.05
     st = integ.last_stats
@@ -119,16 +119,23 @@ def test_hide_emitters_matches_stock(name):
     assert np.mean(d <= 1e-3) >= 0.999, f"max |diff| {d.max()}"
 
 
-def test_registered_for_every_variant_set_later():
-    """No variant is set by importing the package; the integrator follows variant changes."""
+@pytest.mark.parametrize("first", ["mitsuba", "layerbvh_mitsuba", "variant"])
+def test_registered_for_every_variant_set_later(first):
+    """No variant is set by importing the package; the integrators follow variant changes, whether
+    Mitsuba is imported before the package, after it (the package imports nothing heavy: it
+    registers right after Mitsuba's import), or with a variant already set."""
     import subprocess
     import sys
-    code = ("import mitsuba as mi, layerbvh_mitsuba; assert mi.variant() is None; "
-            "mi.set_variant('llvm_ad_mono'); i = mi.load_dict({'type': 'layerbvh'}); "
-            "mi.set_variant('llvm_ad_rgb'); j = mi.load_dict({'type': 'layerbvh'}); "
+    imports = {"mitsuba": "import mitsuba as mi, layerbvh_mitsuba; assert mi.variant() is None",
+               "layerbvh_mitsuba": "import layerbvh_mitsuba, sys; assert 'mitsuba' not in sys.modules; "
+                                   "import mitsuba as mi; assert mi.variant() is None",
+               "variant": "import mitsuba as mi; mi.set_variant('llvm_ad_spectral'); import layerbvh_mitsuba; "
+                          "mi.load_dict({'type': 'layerbvh_volpath'})"}[first]
+    code = (imports + "; mi.set_variant('llvm_ad_mono'); i = mi.load_dict({'type': 'layerbvh'}); "
+            "mi.set_variant('llvm_ad_rgb'); j = mi.load_dict({'type': 'layerbvh_direct'}); "
             "print(type(i).__name__, type(j).__name__)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert r.returncode == 0 and r.stdout.split() == ["LayerBVHIntegrator", "LayerBVHIntegrator"], r.stderr
+    assert r.returncode == 0 and r.stdout.split() == ["LayerBVHIntegrator", "LayerBVHDirectIntegrator"], r.stderr
 
 
 def _distinct_kernels(scene, integ) -> int:

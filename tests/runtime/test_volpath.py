@@ -12,7 +12,8 @@ import pytest
 
 from layerbvh_mitsuba import testing
 from layerbvh_mitsuba.ab import metrics
-from layerbvh_mitsuba.ab.render import path_settings, use_variant
+from layerbvh_mitsuba.ab.render import use_variant
+from layerbvh_mitsuba.ab.scene_integrator import path_settings
 
 SCENES = Path(__file__).resolve().parents[2] / "scenes"
 MEDIA = SCENES / "media"

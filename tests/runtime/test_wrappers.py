@@ -10,7 +10,8 @@ import pytest
 from layerbvh_mitsuba import testing
 from layerbvh_mitsuba.ab import metrics
 from layerbvh_mitsuba.ab.compare import CompareSettings, compare
-from layerbvh_mitsuba.ab.render import path_settings, render_passes, use_variant
+from layerbvh_mitsuba.ab.render import render_passes, use_variant
+from layerbvh_mitsuba.ab.scene_integrator import path_settings
 from layerbvh_mitsuba.cli import main
 from layerbvh_mitsuba.runtime.settings import Traversal
 

@@ -11,7 +11,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from layerbvh_mitsuba.ab.render import integrator_name
+from layerbvh_mitsuba.ab.scene_integrator import integrator_name
 from layerbvh_mitsuba.cli import main
 
 SCENES = Path(__file__).resolve().parents[2] / "scenes"

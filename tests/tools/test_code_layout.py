@@ -1,4 +1,4 @@
-"""The house rules of the code, read from its source: arrows run one way (engine <- runtime <- A/B <- tools), no import cycles, no engine internals on the Mitsuba side, local imports only with a reason, a small top of plugin/."""
+"""The house rules of the code, read from its source: arrows run one way (engine <- runtime <- A/B <- tools), no import cycles, no engine internals on the Mitsuba side, local imports only with a reason, a small top of plugin/, no module over 500 lines, estimators apart from the render driver, no `__init__` called by name."""
 from __future__ import annotations
 
 import ast
@@ -134,7 +134,7 @@ def test_plugin_top_holds_few_modules_and_the_three_layers():
         assert (PACKAGES["layerbvh_mitsuba"] / layer / "__init__.py").is_file(), layer
 
 
-@pytest.mark.parametrize("name", ["cli", "testing", "tools.sweep.point", "tools.third_party", "tools.stability.cases"])
+@pytest.mark.parametrize("name", ["cli", "testing", "tools.sweep.point", "tools.third_party", "tools.stability.image_cases"])
 def test_every_ab_user_runs_the_one_comparison(name):
     """The CLI, the pytest helpers, the sweep's points, the third-party table and the stability
     suite import ab.compare.compare; none renders a stock/ours pair of its own (`"type": "path"`
@@ -143,6 +143,42 @@ def test_every_ab_user_runs_the_one_comparison(name):
     src = path.read_text()
     assert any(t == "layerbvh_mitsuba.ab.compare" for t, _, _ in _imports(f"layerbvh_mitsuba.{name}", path))
     assert "compare(" in src
-    assert not ('"type": "layerbvh"' in src and '"type": "path"' in src and name != "tools.stability.cases"), \
+    assert not ('"type": "layerbvh"' in src and '"type": "path"' in src and name != "tools.stability.image_cases"), \
         f"{path.name} builds both sides itself"
     assert "cli import main" not in src and "cli.main(" not in src
+
+
+MAX_MODULE_LINES = 500
+# The one exception, and why: the locality replay is one numba compilation unit. numba's on-disk
+# cache checks only the file a function is in, so a kernel split from the per-lane step it inlines
+# would keep serving the old step after an edit (as memtrace already must for memmodel; see there).
+LONG_MODULES = {"layerbvh/memtrace.py"}
+
+
+def test_no_module_over_500_lines():
+    """A module that outgrows 500 lines does more than one job: split it by job."""
+    long = {rel: n for p in MODULES.values() if (rel := str(p.relative_to(ROOT))) not in LONG_MODULES
+            and (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES}
+    assert not long, long
+
+
+def test_estimators_import_nothing_of_the_driver():
+    """runtime/estimators/ sample given their queries (estimators.common.Tracing): none imports
+    the render driver or the registry that pairs them, so each reads alone against its stock file."""
+    driver = {"layerbvh_mitsuba.runtime.driver", "layerbvh_mitsuba.runtime.registry"}
+    bad = [(n, t) for n, p in MODULES.items() if n.startswith("layerbvh_mitsuba.runtime.estimators")
+           for t, _, _ in _imports(n, p) if t in driver]
+    assert not bad, bad
+
+
+def test_no_init_called_by_name_across_classes():
+    """`Base.__init__(self, ...)` ties a class to another by name (and once hid which class an
+    integrator was): call super().__init__, or compose. (The driver's `self._base.__init__` is the
+    variant's nanobind base, an attribute, not a name.)"""
+    bad = []
+    for n, path in MODULES.items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "__init__" \
+                    and isinstance(node.func.value, ast.Name):
+                bad.append(f"{path.relative_to(ROOT)}:{node.lineno}: {node.func.value.id}.__init__")
+    assert not bad, bad

@@ -85,3 +85,45 @@ def test_under_xdist_the_summary_is_built_once(project):
     run.assert_outcomes(passed=2, failed=1)
     assert set(_records(out)) == {"test_same", "test_other_depth", "test_marked"}  # every worker's records
     assert "2 passed, 1 failed" in (out / "index.html").read_text()
+
+
+PLAIN = '''
+import sys
+
+def test_plain():
+    assert not {"mitsuba", "drjit", "numba", "layerbvh"} & set(sys.modules), \\
+        sorted({"mitsuba", "drjit", "numba", "layerbvh"} & set(sys.modules))
+'''
+
+
+def _pytest_plain(cwd, *args, env=None) -> float:
+    """Wall time of `pytest -q test_plain.py ARGS` in a fresh process, which must pass."""
+    import subprocess  # local: only these start-up tests run pytest as a plain subprocess
+    import sys
+    import time
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "test_plain.py", *args],
+                       cwd=cwd, capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode == 0, r.stdout + r.stderr
+    return time.perf_counter() - t0
+
+
+def test_the_plugin_costs_nothing_until_used(tmp_path):
+    """Issue 42: a run that never touches a scene imports no Mitsuba, Dr.Jit, numba or engine
+    (the test asserts it from inside), and pytest's start-up with the plugin is within 0.2 s of
+    the same run without it (`-p no:layerbvh`): the best of five each, taken in turns (the suite
+    runs beside another process)."""
+    (tmp_path / "test_plain.py").write_text(PLAIN)
+    times = [(_pytest_plain(tmp_path), _pytest_plain(tmp_path, "-p", "no:layerbvh")) for _ in range(5)]
+    with_plugin, without = min(t[0] for t in times), min(t[1] for t in times)
+    assert with_plugin - without < 0.2, (with_plugin, without)
+
+
+def test_the_plugin_loads_where_mitsuba_cannot_be_imported(tmp_path):
+    """A Mitsuba that cannot be imported breaks no pytest run that does not use it."""
+    import os  # local: as above
+    (tmp_path / "test_plain.py").write_text(PLAIN)
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "mitsuba.py").write_text("raise ImportError('no Mitsuba here')\n")
+    _pytest_plain(tmp_path, env={**os.environ, "PYTHONPATH": str(broken)})

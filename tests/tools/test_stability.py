@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import layerbvh
-from layerbvh_mitsuba.tools.stability import cases as sc
+from layerbvh_mitsuba.tools.stability import cases as sc, mesh_cases
 
 
 @pytest.mark.parametrize("name", list(sc.CASES))
@@ -25,15 +25,15 @@ def test_leak_count_catches_cracks():
     """Negative control for the watertightness case: shrink every triangle of the closed cube by
     1e-4 about its centroid (cracks along every edge) and the same rays must leak."""
     rng = np.random.default_rng(0)
-    _, v, f = sc.closed_meshes()[1]
-    o, d, dist = sc.edge_rays(v, f, 1.0, 0.0, 1, rng)
+    _, v, f = mesh_cases.closed_meshes()[1]
+    o, d, dist = mesh_cases.edge_rays(v, f, 1.0, 0.0, 1, rng)
     tri = v[f]
     shrunk = (tri - tri.mean(1, keepdims=True)) * (1 - 1e-4) + tri.mean(1, keepdims=True)
     cracked_v, cracked_f = shrunk.reshape(-1, 3), np.arange(3 * len(f)).reshape(-1, 3)
     whole = layerbvh.build(v.astype(np.float32), f).trace(o, d)
     cracked = layerbvh.build(cracked_v.astype(np.float32), cracked_f).trace(o, d)
-    assert sc.leaks(whole.prim, whole.t, dist, 1.0) == 0
-    assert sc.leaks(cracked.prim, cracked.t, dist, 1.0) > 0.3 * len(o)
+    assert mesh_cases.leaks(whole.prim, whole.t, dist, 1.0) == 0
+    assert mesh_cases.leaks(cracked.prim, cracked.t, dist, 1.0) > 0.3 * len(o)
 
 
 def test_exact_check_names_the_wrong_side():
@@ -43,7 +43,7 @@ def test_exact_check_names_the_wrong_side():
     f = np.array([[0, 1, 2], [3, 4, 5]])
     o = np.array([[0.2, 0.2, 2.0], [0.9, 0.9, 2.0]], np.float32)
     d = np.array([[0, 0, -1], [0, 0, -1]], np.float32)
-    near, far, miss = np.uint32(1), np.uint32(0), np.uint32(sc.MISS)
+    near, far, miss = np.uint32(1), np.uint32(0), np.uint32(layerbvh.MISS)
     answers = {"right": np.array([near, miss]), "farther": np.array([far, miss]), "fake": np.array([near, near])}
     wrong = embree.wrong_answers(v, f, o, d, answers, np.array([0, 1]))
     assert wrong == {"right": 0, "farther": 1, "fake": 1}

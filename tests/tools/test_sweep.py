@@ -10,7 +10,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 import layerbvh
-from layerbvh_mitsuba.tools.sweep import grid as sweep
+from layerbvh_mitsuba.tools.sweep import runner, store
 from layerbvh_mitsuba.cli import main
 from layerbvh_mitsuba.ab.metrics import AGREES, SAME_PATHS
 
@@ -139,11 +139,11 @@ def test_failures_are_rows_and_an_external_scheduler_runs_the_points(tmp_path):
 
 
 def test_a_point_over_its_memory_limit_is_killed_and_recorded():
-    [point] = sweep.make_points("compare", [(str(SCENES / "cbox.xml"), "cbox.xml")],
+    [point] = store.make_points("compare", [(str(SCENES / "cbox.xml"), "cbox.xml")],
                                 [{"traversal": "per_ray", "treelet_height": 8, "spp": 2, "res": [16, 12], "seed": 0,
                                   "variant": "llvm_ad_rgb"}])
     # A Mitsuba process always holds far more than 32 MiB: the limit must trip.
-    run = sweep.run_point_task(asdict(point), asdict(sweep.Limits(memory_bytes=32 << 20)))
+    run = runner.run_point_task(asdict(point), asdict(runner.Limits(memory_bytes=32 << 20)))
     assert run["status"] == "killed" and run["error"].startswith("killed: resident memory"), run
     assert run["peak_rss_bytes"] > 32 << 20 and "log.txt" in run["files"]
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import mitsuba as mi
 
 from layerbvh_mitsuba.ab.metrics import SAME_PATHS
-from layerbvh_mitsuba.ab.render import path_props
+from layerbvh_mitsuba.ab.scene_integrator import path_props
 
 ROOT = Path(__file__).resolve().parents[2]
 

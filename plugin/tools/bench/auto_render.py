@@ -27,7 +27,8 @@ import time
 from pathlib import Path
 
 from layerbvh import cpu_model, llvm_vector_width
-from layerbvh_mitsuba.ab.render import load_integrator, load_scene, path_settings, timed_render, use_variant
+from layerbvh_mitsuba.ab.render import load_integrator, load_scene, timed_render, use_variant
+from layerbvh_mitsuba.ab.scene_integrator import path_settings
 
 DEFAULT_SCENES = ("scenes/staircase2/scene.xml", "scenes/paper_mix.xml", "scenes/bunny_box.xml",
                   "scenes/paper_glass.xml")

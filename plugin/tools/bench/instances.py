@@ -27,7 +27,7 @@ from layerbvh import meshes
 from layerbvh_mitsuba import atomic
 from layerbvh_mitsuba.ab import embree
 from layerbvh_mitsuba.ab.render import use_variant
-from layerbvh_mitsuba.runtime.adapter import collect_geometry
+from layerbvh_mitsuba.runtime.scene_geometry import collect_geometry
 from layerbvh_mitsuba.tools.bench.traversal import timed
 
 MIB = 1 << 20

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from layerbvh_mitsuba.ab.render import UserError, load_scene, path_props, use_variant
+from layerbvh_mitsuba.ab.render import UserError, load_scene, use_variant
+from layerbvh_mitsuba.ab.scene_integrator import path_props
 from layerbvh_mitsuba.ab.stock_cache import reference_key
 from layerbvh_mitsuba.runtime import record
 from layerbvh_mitsuba.runtime.cache import cache_dir

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from layerbvh_mitsuba import atomic
 from layerbvh_mitsuba.repo import ROOT
-from layerbvh_mitsuba.tools.bench import traversal as bt
+from layerbvh_mitsuba.tools.bench import traversal_figures as btf
 from layerbvh_mitsuba.tools.bench import gpu_report
 from layerbvh_mitsuba.tools.bench.locality import benchmarks_section, merge_documents, write_figures
 
@@ -77,7 +77,7 @@ def headline_rows(rows: list[dict]) -> list[dict]:
                     "sorted_vs_per_ray": srt["mrays_s"] / per["mrays_s"],
                     "sorted_vs_embree": srt["mrays_s"] / emb["mrays_s"], "per_ray_vs_embree": per["mrays_s"] / emb["mrays_s"],
                     "memory_vs_per_ray": mem_s / mem_p if mem_s and mem_p else None,
-                    "auto": auto and auto["mrays_s"], "auto_choice": auto and bt.mode_label(auto),
+                    "auto": auto and auto["mrays_s"], "auto_choice": auto and btf.mode_label(auto),
                     "auto_vs_best_of_two": auto and auto.get("ratio_best_of_two")})
     return out
 
@@ -131,7 +131,7 @@ def full_table(rs: list[dict]) -> str:
     for r in rs:
         ts = r.get("time_split_s") or {}
         lines.append(
-            f"| {bt.mode_label(r)} | {_f(_k(r), 'd')} | {_f(r['treelet_height'], 'd')} | {r['mrays_s']:.2f} | {min(r['runs']):.2f}–"
+            f"| {btf.mode_label(r)} | {_f(_k(r), 'd')} | {_f(r['treelet_height'], 'd')} | {r['mrays_s']:.2f} | {min(r['runs']):.2f}–"
             f"{max(r['runs']):.2f} | {r['ratio_per_ray']:.2f} | {r['ratio_embree']:.2f} "
             f"| {_f(r['inner_per_ray'], '.1f')} | {_f(r['leaves_per_ray'])} | {_f(r['tris_per_ray'], '.1f')} "
             f"| {_f(r['steps'], 'd')} | " + " | ".join(_f(ts.get(k), '.3f') for k in STAGES)

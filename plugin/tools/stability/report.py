@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from layerbvh_mitsuba import atomic
 from layerbvh_mitsuba.repo import ROOT
-from layerbvh_mitsuba.tools.stability import cases as sc, robustness as rb
+from layerbvh_mitsuba.tools.stability import cases as sc, image_cases, robustness as rb
 
 
 def _cell(x) -> str:
@@ -52,11 +52,11 @@ def markdown(results, command: str, scale: float, seconds: float, robust=()) -> 
         "robust (a hit on a triangle the ray misses, a miss where a named triangle is hit, or a farther hit than a "
         "named one). Disagreements where nobody is wrong are undecidable in float64 too: the ray starts on a "
         "triangle, lies in its plane, or passes within 1e-9 (barycentric) of an edge. *Image level*: our `layerbvh` integrator in `layer_sorted`, "
-        f"with treelets of {sc.LAYER_HEIGHT} levels so that the wavefront steps and the sort run (the rule checks "
+        f"with treelets of {image_cases.LAYER_HEIGHT} levels so that the wavefront steps and the sort run (the rule checks "
         "that they did: more than one wavefront step per query), against stock `path` on the scenes in "
         "`scenes/stability/`; disagreements are same-seed pixels differing by more than 1e-3 × max(1, |stock|) from "
         "stock with Embree in default / robust mode (≤ 1% of pixels), no NaN/Inf pixel, and a negative control: the "
-        f"same rule applied to stock against stock with one material's albedo × {sc.CONTROL_FACTOR:g} (the light's "
+        f"same rule applied to stock against stock with one material's albedo × {image_cases.CONTROL_FACTOR:g} (the light's "
         "radiance at max_depth 1) must fail, so the rule can see a 2% change on that scene.", "",
         "| case | level | tried | disagreements: default | robust | wrong (exact): ours / default / robust "
         "| ours NaN/Inf | result |",

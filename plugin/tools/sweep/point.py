@@ -24,7 +24,7 @@ from layerbvh_mitsuba import atomic
 from layerbvh_mitsuba.ab.compare import CompareSettings, ComparisonFailed, compare
 from layerbvh_mitsuba.ab.render import UserError, load_scene, use_variant
 from layerbvh_mitsuba.ab.report import json_safe, write_comparison
-from layerbvh_mitsuba.runtime.adapter import UnsupportedShapeError, collect_geometry
+from layerbvh_mitsuba.runtime.scene_geometry import UnsupportedShapeError, collect_geometry
 from layerbvh_mitsuba.runtime.settings import Traversal
 from layerbvh_mitsuba.tools import converge
 from layerbvh_mitsuba.tools.bench import report as bench_report, traversal

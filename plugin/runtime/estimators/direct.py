@@ -1,80 +1,85 @@
-"""The `layerbvh_direct` integrator: Mitsuba's `direct` (direct illumination; emitter and BSDF sampling combined by MIS) with every ray query answered by the Layer BVH traversal."""
+"""Stock `direct`'s estimator (direct illumination: emitter and BSDF sampling combined by MIS), every ray through the given queries. Follows src/integrators/direct.cpp @ v3.9.1."""
 from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
 
-from layerbvh_mitsuba.runtime.held_instances import instances_held
-from layerbvh_mitsuba.runtime.integrator import LayerBVHPathTracer, loop, mis_weight
-from layerbvh_mitsuba.runtime.record import RecordingQueries, bounce_kind
+from layerbvh_mitsuba.runtime.estimators.common import Kinds, Tracing, loop, mis_weight, skip_area_emitters
+from layerbvh_mitsuba.runtime.features import Features
+from layerbvh_mitsuba.runtime.record import bounce_kind
 
 
-class LayerBVHDirect(LayerBVHPathTracer):
-    r"""Direct illumination (the same estimator as stock ``direct``) tracing with layerbvh.
+class DirectEstimator:
+    r"""Direct illumination: the estimator of stock ``direct``.
 
-    Algorithm (stock ``direct``'s ``sample``): find the camera ray's hit with our closest-hit
-    traversal and add the emission seen there (unless ``hide_emitters``). At a hit, for each of
+    Algorithm (stock ``direct``'s ``sample``): find the camera ray's hit with a closest-hit query
+    and add the emission seen there (unless ``hide_emitters``). At a hit, for each of
     ``emitter_samples`` samples draw ``next_2d``, sample an emitter direction, test its visibility
-    with our any-hit traversal and add the BSDF-weighted emission, MIS-weighted against BSDF
-    sampling (a delta emitter: weight 1); then for each of ``bsdf_samples`` samples draw
-    ``next_1d`` and ``next_2d``, sample the BSDF, trace the sampled direction with our closest-hit
-    traversal and add the emission it reaches, MIS-weighted against emitter sampling. Sampler use
-    is in exactly this order, and every sample is drawn on every lane (as a JIT render of stock
-    draws them), so a same-seed render matches stock ``direct`` up to floating-point noise.
+    with an any-hit query and add the BSDF-weighted emission, MIS-weighted against BSDF sampling
+    (a delta emitter: weight 1); then for each of ``bsdf_samples`` samples draw ``next_2d`` and
+    ``next_1d``, sample the BSDF, trace the sampled direction with a closest-hit query and add the
+    emission it reaches, MIS-weighted against emitter sampling. Sampler use is in exactly this
+    order, and every sample is drawn on every lane (as a JIT render of stock draws them), so a
+    same-seed render matches stock ``direct`` up to floating-point noise.
 
-    There is no bounce loop: in the megakernel modes (``per_ray``, ``embree``) a render is one
-    kernel, in the wavefront modes a few queries between kernels. The feature plan leaves out the
-    shadow rays of a scene without emitters and the BSDF rays of one where nothing hit can emit
-    (their samples are still drawn).
+    There is no bounce loop: in the megakernel a render is one kernel, between kernels a few
+    queries. The feature plan leaves out the shadow rays of a scene without emitters and the BSDF
+    rays of one where nothing hit can emit (their samples are still drawn).
 
     Properties: ``shading_samples`` (1; sets both), ``emitter_samples``, ``bsdf_samples`` and
-    ``hide_emitters`` as in ``direct``; ``traversal``, ``branching``, ``treelet_height``,
-    ``leaf_size``, ``stats``, ``adaptive`` and ``batch_rays`` as in ``layerbvh``.
-    """
+    ``hide_emitters`` as in ``direct``."""
+
+    PLUGIN = "direct"
+    VOLUMETRIC = False
 
     def __init__(self, props: mi.Properties):
-        LayerBVHPathTracer.__init__(self, props)
         if "shading_samples" in props and ("emitter_samples" in props or "bsdf_samples" in props):
-            raise ValueError("layerbvh_direct integrator: give shading_samples, or emitter_samples and/or "
-                             "bsdf_samples, not both")
+            raise ValueError("give shading_samples, or emitter_samples and/or bsdf_samples, not both")
+        self.hide_emitters = props.get("hide_emitters", False)
         shading = props.get("shading_samples", 1)
         self.emitter_samples = props.get("emitter_samples", shading)
         self.bsdf_samples = props.get("bsdf_samples", shading)
         if min(self.emitter_samples, self.bsdf_samples) < 0 or self.emitter_samples + self.bsdf_samples == 0:
-            raise ValueError(f"layerbvh_direct integrator: needs at least one emitter or BSDF sample and none "
-                             f"negative, got emitter_samples={self.emitter_samples}, "
-                             f"bsdf_samples={self.bsdf_samples}")
+            raise ValueError(f"needs at least one emitter or BSDF sample and none negative, got "
+                             f"emitter_samples={self.emitter_samples}, bsdf_samples={self.bsdf_samples}")
         total = self.emitter_samples + self.bsdf_samples
         # Stock direct's weights: each strategy's share of the samples, and 1 / its sample count.
         self.frac_lum, self.frac_bsdf = self.emitter_samples / total, self.bsdf_samples / total
         self.weight_lum = 1 / self.emitter_samples if self.emitter_samples else 0.0
         self.weight_bsdf = 1 / self.bsdf_samples if self.bsdf_samples else 0.0
 
-    # -- one camera ray per sample --------------------------------------------------------------
-    @instances_held()
-    def sample(self, scene, sampler, ray, medium=None, active=True):
-        state = self.scene_state(scene)
-        start = self._begin(scene, state, ray)
-        megakernel = self.megakernel()
-        queries = self._queries(scene, state.tracer, megakernel)
-        use = state.features
+    def kinds(self, use: Features) -> Kinds:
+        kinds = [(False, "camera")]
+        if self.bsdf_samples and use.emitter_hits.on:
+            kinds.append((False, "bounce"))
+        if self.emitter_samples and use.emitter_sampling.on:
+            kinds.append((True, "shadow"))
+        return kinds
+
+    def auto_rule(self, use: Features) -> str | None:
+        return None
+
+    def prepass(self, scene, sampler, cam: mi.Ray3f, tr: Tracing) -> None:
+        """auto's pre-pass: the estimator itself on camera rays `cam` (every kind it traces)."""
+        self.sample(scene, sampler, cam, None, dr.full(mi.Bool, True, dr.width(cam.o)), tr)
+
+    def sample(self, scene, sampler, ray: mi.Ray3f, medium, active, tr: Tracing):
+        """(radiance, valid) seen along the camera rays `ray`."""
+        queries, use = tr.queries, tr.use
         n = dr.width(ray.o)
-        active = mi.Bool(active) & dr.full(mi.Bool, True, n)
-        ray = mi.Ray3f(ray)
-        if not megakernel:
-            self._vertices = 1
+        tr.iteration()
 
         # Visible emitters.
         pi = queries.intersect(ray, active, hint="camera")
         if self.hide_emitters:  # as stock: a camera ray that hits an area emitter continues behind it
-            pi = self._skip_area_emitters(queries, ray, pi, active, megakernel)
+            pi = skip_area_emitters(queries, ray, pi, active, tr.megakernel)
         si = pi.compute_surface_interaction(ray, mi.RayFlags.All, active)
         valid_ray = active & si.is_valid()
         result = mi.Spectrum(0)
         if not self.hide_emitters:
             result += si.emitter(scene, active).eval(si, active)
         active &= si.is_valid()
-        if not megakernel:
+        if not tr.megakernel:
             # Between kernels: the emission seen here goes into a kernel of its own. (Measured: with
             # emitter_samples 0 the camera hit's and the BSDF ray's Emitter::eval calls otherwise
             # meet in one kernel, where Dr.Jit 1.5's LLVM backend emitted their identical callable
@@ -82,7 +87,7 @@ class LayerBVHDirect(LayerBVHPathTracer):
             # of function", an abort.)
             dr.eval(result)
 
-        # Each strategy's samples run as a loop (`integrator.loop`): in the megakernel one symbolic
+        # Each strategy's samples run as a loop (`common.loop`): in the megakernel one symbolic
         # loop, each BSDF or emitter call recorded once; between kernels, the running sum is
         # evaluated after every sample. (Measured: unrolled, two samples' Emitter calls met in one
         # kernel, where Dr.Jit 1.5's LLVM backend emitted their identical callable twice after
@@ -121,7 +126,7 @@ class LayerBVHDirect(LayerBVHPathTracer):
             bsdf_val = si.to_world_mueller(bsdf_val, -bs.wo, si.wi)
             active_b = active & dr.any(mi.unpolarized_spectrum(bsdf_val) != 0)
             bray = si.spawn_ray(si.to_world(bs.wo))
-            kind = bounce_kind(mi, dr, bs.sampled_type, 0) if isinstance(queries, RecordingQueries) else None
+            kind = bounce_kind(mi, dr, bs.sampled_type, 0) if tr.recording else None
             si_b = queries.intersect(bray, active_b, hint="bounce", kind=kind).compute_surface_interaction(
                 bray, mi.RayFlags.All, active_b)
             emitter = si_b.emitter(scene, active_b)
@@ -138,11 +143,9 @@ class LayerBVHDirect(LayerBVHPathTracer):
             if count:
                 sampler, _, result = loop((sampler, dr.zeros(mi.UInt32, n), result),
                                           cond=lambda sampler, i, result, count=count: i < count, body=step,
-                                          symbolic=megakernel, label=f"layerbvh_direct {label}")
+                                          symbolic=tr.megakernel, label=f"layerbvh_direct {label}")
 
-        self._finish(state, start, megakernel)
-        return result, valid_ray, []
+        return result, valid_ray
 
-    def to_string(self):
-        return (f"LayerBVHDirectIntegrator[emitter_samples={self.emitter_samples}, bsdf_samples={self.bsdf_samples}, "
-                f"traversal={self.traversal}, branching={self.branching}, treelet_height={self.treelet_height}]")
+    def describe(self) -> str:
+        return f"emitter_samples={self.emitter_samples}, bsdf_samples={self.bsdf_samples}"
