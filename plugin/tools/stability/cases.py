@@ -20,8 +20,11 @@ albedo x 1.02 (see image_case).
 """
 from __future__ import annotations
 
-# Importing the case modules registers their cases (machinery.case), in this order.
-from layerbvh_mitsuba.tools.stability import image_cases, mesh_cases, ray_cases  # noqa: F401
+# Importing the case modules registers their cases (machinery.case), in this order: ray level
+# (precision, then meshes and inputs), then image level.
+from layerbvh_mitsuba.tools.stability import ray_cases  # noqa: F401  (isort: keep this order)
+from layerbvh_mitsuba.tools.stability import mesh_cases  # noqa: F401
+from layerbvh_mitsuba.tools.stability import image_cases  # noqa: F401
 from layerbvh_mitsuba.tools.stability.machinery import CASES, RAYS, CaseResult, run_case
 
 __all__ = ["CASES", "RAYS", "CaseResult", "run_case"]
