@@ -121,20 +121,9 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
 
         # -- a triangle of the current leaf --
         if tri_cur < tri_end:
-            hit, t, u, v, prim = hit_triangle(m, lay.tris, tri_cur, ray, active)
-            closer = hit & ((t < t_best) | ((t == t_best) & _first_by_id(prim, prim_best, in_inst, hit_inst, instanced)))
-            if instanced:
-                hit_inst = dr.select(closer, in_inst, hit_inst)
-            t_best = dr.select(closer, t, t_best)
-            u_best = dr.select(closer, u, u_best)
-            v_best = dr.select(closer, v, v_best)
-            prim_best = dr.select(closer, prim, prim_best)
-            if results is not None:  # (a closer hit is written by slot at once: see the docstring)
-                if closer:  # (a branch: a packet where no lane found a closer hit skips the stores)
-                    for dst, src in ((results.t, t), (results.u, u), (results.v, v), (results.prim, prim)):
-                        dr.scatter(dst, src, s.slot, closer)
-                    if instanced:
-                        dr.scatter(results.inst, in_inst, s.slot, closer)
+            closer, t_best, u_best, v_best, prim_best, hit_inst = _test_triangle(
+                m, lay, ray, tri_cur, active, t_best, u_best, v_best, prim_best, in_inst, hit_inst, instanced,
+                results, s.slot)
             tri_cur += 1
             if count_work:
                 n_tri += 1
@@ -152,54 +141,27 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
         e_link, e_t = m.UInt32(loc_link[nl]), m.Float(loc_t[nl])
         from_global = m.Bool(False)
         if stack is not None:
-            from_global = want & ~from_local & (sp > 0)
-            sp = dr.select(from_global, sp - 1, sp)
-            e_link = dr.select(from_global, dr.gather(m.UInt32, stack.link, base + sp, from_global), e_link)
-            e_t = dr.select(from_global, dr.gather(m.Float, stack.t, base + sp, from_global), e_t)
-            if count_work:
-                n_stack += dr.select(from_global, m.UInt32(1), m.UInt32(0))
+            from_global, sp, e_link, e_t, n_stack = _pop_global(m, stack, base, want & ~from_local, sp, e_link, e_t,
+                                                                 n_stack, count_work)
         empty = want & ~from_local & ~from_global
         done |= empty
         active &= ~empty
         # An entry farther than the closest hit found since it was pushed is culled (with the
         # slab test's rounding margin, as in hit_children: ties must stay reachable).
         link = dr.select(want, dr.select(active & (e_t <= t_best * FAR_SCALE), e_link, POP), link)
-        leave_inst = m.Bool(False)
         if instanced:
-            # The LEAVE marker: the ray's instance is done; back to world space, next entry.
-            leave_inst = want & (link == LEAVE)
-            link = dr.select(leave_inst, POP, link)
-            if leave_inst:
-                in_inst = m.UInt32(MISS)
-                ray = setup_ray(m, world_o, world_d)
+            link, in_inst, ray = _leave_instance(m, want, link, in_inst, ray, world_o, world_d)
         if bounded:
-            # Entries pushed in this step are of its treelet, exits excepted; global ones may be
-            # of any treelet (a node's is looked up, an exit names its own).
-            other = want & active & (link != POP) & ((link & LEAF_BIT) == 0)
-            is_exit = other & ((link & EXIT_BIT) != 0)
-            tre = dr.select(is_exit, link & PAYLOAD_MASK, s.treelet)
-            global_node = other & from_global & ~is_exit
-            tre = dr.select(global_node, dr.gather(m.UInt32, lay.node_treelet, link & PAYLOAD_MASK, global_node), tre)
-            if count_work:
-                n_treelet += dr.select(global_node, m.UInt32(1), m.UInt32(0))
-            leave = other & (tre != s.treelet)
+            leave, tre, n_treelet = _entry_treelet(m, lay, s, want, active, link, from_global, n_treelet, count_work)
             next_treelet = dr.select(leave, tre, next_treelet)
             active &= ~leave
 
         # -- an instance: into its object space, the LEAVE marker pushed below its entries --
         entered = m.Bool(False)
         if instanced:
-            entered = active & (tri_cur >= tri_end) & (link >= INSTANCE_TAG) & (link < LEAVE)
-            if entered:
-                in_inst = link & LEAF_FIRST_MASK
-                enter_obj = to_object_space(m, lay.instances, in_inst, world_o, world_d, entered)
-                ray = setup_ray(m, enter_obj.o, enter_obj.d)
-                link = enter_obj.root
-                if count_work:
-                    n_enter += 1
-                if bounded:  # the group's root treelet is another treelet: this step ends here
-                    next_treelet = link & PAYLOAD_MASK
-                    active &= False
+            entered, in_inst, ray, link, n_enter, next_treelet, active = _enter_instance(
+                m, lay, active, tri_cur, tri_end, link, in_inst, ray, world_o, world_d, n_enter, next_treelet,
+                count_work, bounded)
 
         # -- a node: all children; on with the nearest, push the others (far to near) --
         # Binary: `push` says whether the farther child is pushed. Wide: `n_push` entries,
@@ -243,27 +205,10 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
                     # The nearer child is in another treelet: this step ends here.
                     next_treelet = link & PAYLOAD_MASK
                     active &= False
-        slot = m.UInt32(cap)
         if wide:
-            if n_push > 0:  # a packet where no lane pushes skips the K - 1 writes (lanes that
-                # do not take this branch have n_push = 0 and would write the spare slot anyway)
-                for j in range(n_slots):
-                    slot = dr.select(m.UInt32(j) < n_push, nl + n_push - (j + 1), cap)
-                    loc_link[slot] = push_links[j]
-                    loc_t[slot] = push_ts[j]
-                    if pbuf is not None:
-                        dr.scatter(pbuf.link, push_links[j], pbase + slot, m.UInt32(j) < n_push)
-                        dr.scatter(pbuf.t, push_ts[j], pbase + slot, m.UInt32(j) < n_push)
-            nl += n_push
+            nl = _push_wide(m, loc_link, loc_t, nl, n_push, push_links, push_ts, cap, pbuf, pbase)
         else:
-            slot = dr.select(push, nl, cap)
-            loc_link[slot] = far_link
-            loc_t[slot] = far_t
-            if pbuf is not None:
-                if push:  # (a branch: a packet where no lane pushes skips the stores)
-                    dr.scatter(pbuf.link, far_link, pbase + slot, push)
-                    dr.scatter(pbuf.t, far_t, pbase + slot, push)
-            nl = dr.select(push, nl + 1, nl)
+            nl = _push_binary(m, loc_link, loc_t, nl, push, far_link, far_t, cap, pbuf, pbase)
 
         # -- a leaf: its triangles from the next iteration on (an instance link waits for the
         # next iteration, which enters it) --
@@ -287,6 +232,124 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
             out.n_top, out.n_enter = n_top, n_enter
     local = [(m.UInt32(loc_link[k]), m.Float(loc_t[k])) for k in range(cap)]
     return out, done, nl, local, u_best, v_best
+
+
+@dr.syntax
+def _test_triangle(m, lay: DeviceLayout, ray, tri, active, t_best, u_best, v_best, prim_best, in_inst, hit_inst,
+                   instanced: bool, results, slot):
+    """One triangle of the current leaf against the closest hit so far: (closer, and the closest
+    hit's t, u, v, prim and instance). Ties in t go by (instance, primitive). In a wavefront step
+    (`results` given) a closer hit is written by slot at once (see walk's docstring)."""
+    hit, t, u, v, prim = hit_triangle(m, lay.tris, tri, ray, active)
+    closer = hit & ((t < t_best) | ((t == t_best) & _first_by_id(prim, prim_best, in_inst, hit_inst, instanced)))
+    if instanced:
+        hit_inst = dr.select(closer, in_inst, hit_inst)
+    t_best = dr.select(closer, t, t_best)
+    u_best = dr.select(closer, u, u_best)
+    v_best = dr.select(closer, v, v_best)
+    prim_best = dr.select(closer, prim, prim_best)
+    if results is not None:
+        if closer:  # (a branch: a packet where no lane found a closer hit skips the stores)
+            for dst, src in ((results.t, t), (results.u, u), (results.v, v), (results.prim, prim)):
+                dr.scatter(dst, src, slot, closer)
+            if instanced:
+                dr.scatter(results.inst, in_inst, slot, closer)
+    return closer, t_best, u_best, v_best, prim_best, hit_inst
+
+
+def _pop_global(m, stack: EntryStack, base, want, sp, e_link, e_t, n_stack, count_work: bool):
+    """The next entry from the global entry stack (entries pushed by earlier steps, read, never
+    written here) where `want` and the ray holds one: (from_global, sp, link, t, n_stack)."""
+    from_global = want & (sp > 0)
+    sp = dr.select(from_global, sp - 1, sp)
+    e_link = dr.select(from_global, dr.gather(m.UInt32, stack.link, base + sp, from_global), e_link)
+    e_t = dr.select(from_global, dr.gather(m.Float, stack.t, base + sp, from_global), e_t)
+    if count_work:
+        n_stack += dr.select(from_global, m.UInt32(1), m.UInt32(0))
+    return from_global, sp, e_link, e_t, n_stack
+
+
+# -- the instanced, bounded and push parts of the loop, one path each (a @dr.syntax piece's
+# branches are Dr.Jit's; called from _walk's loop, every piece records into its kernel in the
+# same order as when it was written inline: the kernels' IR is the same, hash for hash) --
+
+
+@dr.syntax
+def _leave_instance(m, want, link, in_inst, ray, world_o, world_d):
+    """The LEAVE marker popped: the ray's instance is done; back to world space, next entry."""
+    leave_inst = want & (link == LEAVE)
+    link = dr.select(leave_inst, POP, link)
+    if leave_inst:
+        in_inst = m.UInt32(MISS)
+        ray = setup_ray(m, world_o, world_d)
+    return link, in_inst, ray
+
+
+def _entry_treelet(m, lay: DeviceLayout, s: RayState, want, active, link, from_global, n_treelet, count_work: bool):
+    """A bounded step's popped entry: (whether it lies in another treelet than the step's, that
+    treelet, the lookup count). Entries pushed in this step are of its treelet, exits excepted;
+    global ones may be of any treelet (a node's is looked up, an exit names its own)."""
+    other = want & active & (link != POP) & ((link & LEAF_BIT) == 0)
+    is_exit = other & ((link & EXIT_BIT) != 0)
+    tre = dr.select(is_exit, link & PAYLOAD_MASK, s.treelet)
+    global_node = other & from_global & ~is_exit
+    tre = dr.select(global_node, dr.gather(m.UInt32, lay.node_treelet, link & PAYLOAD_MASK, global_node), tre)
+    if count_work:
+        n_treelet += dr.select(global_node, m.UInt32(1), m.UInt32(0))
+    return other & (tre != s.treelet), tre, n_treelet
+
+
+@dr.syntax
+def _enter_instance(m, lay: DeviceLayout, active, tri_cur, tri_end, link, in_inst, ray, world_o, world_d, n_enter,
+                    next_treelet, count_work: bool, bounded: bool):
+    """An instance link reached: into the instance's object space, on at its group's root (the
+    caller pushes the LEAVE marker). A bounded step ends there: the group's root treelet is
+    another treelet. Returns (entered, in_inst, ray, link, n_enter, next_treelet, active)."""
+    entered = active & (tri_cur >= tri_end) & (link >= INSTANCE_TAG) & (link < LEAVE)
+    if entered:
+        in_inst = link & LEAF_FIRST_MASK
+        enter_obj = to_object_space(m, lay.instances, in_inst, world_o, world_d, entered)
+        ray = setup_ray(m, enter_obj.o, enter_obj.d)
+        link = enter_obj.root
+        if count_work:
+            n_enter += 1
+        if bounded:  # the group's root treelet is another treelet: this step ends here
+            next_treelet = link & PAYLOAD_MASK
+            active &= False
+    return entered, in_inst, ray, link, n_enter, next_treelet, active
+
+
+@dr.syntax
+def _push_wide(m, loc_link, loc_t, nl, n_push, push_links, push_ts, cap: int, pbuf, pbase):
+    """A wide node's pushes: `n_push` entries, push_links/push_ts[j] to stack position
+    nl + n_push - 1 - j (j = 0 on top), also to the push buffer in a wavefront step; the new
+    count. A lane that pushes nothing writes the spare slot `cap`."""
+    slot = m.UInt32(cap)
+    if n_push > 0:  # a packet where no lane pushes skips the K - 1 writes (lanes that
+        # do not take this branch have n_push = 0 and would write the spare slot anyway)
+        for j in range(len(push_links)):
+            slot = dr.select(m.UInt32(j) < n_push, nl + n_push - (j + 1), cap)
+            loc_link[slot] = push_links[j]
+            loc_t[slot] = push_ts[j]
+            if pbuf is not None:
+                dr.scatter(pbuf.link, push_links[j], pbase + slot, m.UInt32(j) < n_push)
+                dr.scatter(pbuf.t, push_ts[j], pbase + slot, m.UInt32(j) < n_push)
+    return nl + n_push
+
+
+@dr.syntax
+def _push_binary(m, loc_link, loc_t, nl, push, far_link, far_t, cap: int, pbuf, pbase):
+    """A binary node's push of its farther child (where `push`), also to the push buffer in a
+    wavefront step; the new count. A lane that pushes nothing writes the spare slot `cap`."""
+    slot = m.UInt32(cap)
+    slot = dr.select(push, nl, cap)
+    loc_link[slot] = far_link
+    loc_t[slot] = far_t
+    if pbuf is not None:
+        if push:  # (a branch: a packet where no lane pushes skips the stores)
+            dr.scatter(pbuf.link, far_link, pbase + slot, push)
+            dr.scatter(pbuf.t, far_t, pbase + slot, push)
+    return dr.select(push, nl + 1, nl)
 
 
 def _wide_node(m, lay: DeviceLayout, node, ray, t_best, active):
