@@ -22,7 +22,7 @@ class DepthEstimator:
     VOLUMETRIC = False
 
     def __init__(self, props: mi.Properties):
-        props.get("hide_emitters", False)  # (queried, so Mitsuba does not warn it was unused)
+        props.get("hide_emitters", False)  # (read: Mitsuba refuses a property no plugin reads)
 
     def kinds(self, use: Features) -> Kinds:
         return [(False, "camera")]
