@@ -324,7 +324,6 @@ def _push_wide(m, loc_link, loc_t, nl, n_push, push_links, push_ts, cap: int, pb
     """A wide node's pushes: `n_push` entries, push_links/push_ts[j] to stack position
     nl + n_push - 1 - j (j = 0 on top), also to the push buffer in a wavefront step; the new
     count. A lane that pushes nothing writes the spare slot `cap`."""
-    slot = m.UInt32(cap)
     if n_push > 0:  # a packet where no lane pushes skips the K - 1 writes (lanes that
         # do not take this branch have n_push = 0 and would write the spare slot anyway)
         for j in range(len(push_links)):
@@ -341,7 +340,6 @@ def _push_wide(m, loc_link, loc_t, nl, n_push, push_links, push_ts, cap: int, pb
 def _push_binary(m, loc_link, loc_t, nl, push, far_link, far_t, cap: int, pbuf, pbase):
     """A binary node's push of its farther child (where `push`), also to the push buffer in a
     wavefront step; the new count. A lane that pushes nothing writes the spare slot `cap`."""
-    slot = m.UInt32(cap)
     slot = dr.select(push, nl, cap)
     loc_link[slot] = far_link
     loc_t[slot] = far_t

@@ -28,7 +28,7 @@ from layerbvh_mitsuba.ab.render import (UserError, load_integrator, load_scene, 
 from layerbvh_mitsuba.ab.scene_integrator import path_settings
 from layerbvh_mitsuba.ab.report import REPORT_MARKER, heatmap_png, write_comparison
 from layerbvh_mitsuba.runtime.scene_geometry import UnsupportedShapeError
-from layerbvh_mitsuba.runtime.settings import CHOICES, Traversal, check_settings
+from layerbvh_mitsuba.runtime.settings import CHOICES, Traversal, check_traversal_settings
 from layerbvh_mitsuba.tools import converge
 from layerbvh_mitsuba.tools.bench import locality
 from layerbvh_mitsuba.tools.sweep import grid as sweep
@@ -136,8 +136,8 @@ def _check_args(args):
         raise UserError(f"--spp must be >= 1, got {args.spp}")
     try:  # the integrator's own rules, named as the option: "--treelet-height must ..."
         args.traversal = Traversal.parse(args.traversal)
-        check_settings(max_depth=-1, rr_depth=5, treelet_height=args.treelet_height, leaf_size=args.leaf_size,
-                       batch_rays=1, branching=args.branching)
+        check_traversal_settings(treelet_height=args.treelet_height, leaf_size=args.leaf_size, batch_rays=1,
+                                 branching=args.branching)
     except ValueError as e:
         name, _, rule = str(e).partition(" ")
         raise UserError(f"--{name.replace('_', '-')} {rule}") from None

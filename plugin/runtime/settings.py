@@ -61,10 +61,3 @@ def check_traversal_settings(treelet_height: int, leaf_size: int | None, batch_r
     layerbvh.check_param("batch_rays", batch_rays)
     layerbvh.check_param("branching", branching)
 
-
-def check_settings(max_depth: int, rr_depth: int, treelet_height: int, leaf_size: int | None, batch_rays: int,
-                   branching: int = layerbvh.DEFAULT_BRANCHING) -> None:
-    """Every rule for the integrator's numeric properties (the CLI and converge check the same
-    way as the estimator and the driver): a ValueError naming the property and what it must be."""
-    check_depths(max_depth, rr_depth)
-    check_traversal_settings(treelet_height, leaf_size, batch_rays, branching)

@@ -67,7 +67,7 @@ def mis_weight(pdf_a, pdf_b):
 
 def read_depths(props: mi.Properties) -> tuple[int, int, bool]:
     """Stock path tracers' `max_depth` (-1: infinite), `rr_depth` (5) and `hide_emitters` (false),
-    checked by the one rule the CLI also uses (settings.check_depths)."""
+    checked by their one rule (settings.check_depths)."""
     max_depth, rr_depth = props.get("max_depth", -1), props.get("rr_depth", 5)
     check_depths(max_depth, rr_depth)
     return max_depth, rr_depth, props.get("hide_emitters", False)

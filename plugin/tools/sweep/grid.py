@@ -13,7 +13,7 @@ import mitsuba as mi
 import layerbvh
 from layerbvh_mitsuba.ab.render import UserError
 from layerbvh_mitsuba.runtime import record
-from layerbvh_mitsuba.runtime.settings import EMBREE, Traversal, check_settings
+from layerbvh_mitsuba.runtime.settings import EMBREE, Traversal, check_traversal_settings
 from layerbvh_mitsuba.tools.bench.locality import (
     DEFAULT_CAP,
     DEFAULT_KINDS,
@@ -167,8 +167,7 @@ def grid(args) -> list[dict]:
             for h in heights:
                 try:
                     Traversal.parse(t)
-                    check_settings(max_depth=-1, rr_depth=5, treelet_height=h, leaf_size=layerbvh.DEFAULT_LEAF_SIZE,
-                                   batch_rays=1)
+                    check_traversal_settings(treelet_height=h, leaf_size=layerbvh.DEFAULT_LEAF_SIZE, batch_rays=1)
                 except ValueError as e:
                     name, _, rule = str(e).partition(" ")
                     opt = "--treelet-heights" if name == "treelet_height" else f"--{name.replace('_', '-')}"
