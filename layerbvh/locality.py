@@ -46,6 +46,7 @@ class ReplayResult:
     ray_steps: int                  # rays summed over the wavefront steps (not the tail): what sort_bytes is spread over
     pushed: int                     # entries the rays that went on pushed in the steps (written back)
     seconds: float
+    carried: int = 0                # rays summed over the wavefront steps they went on from (a state record each)
     loads: dict = None              # per ray and load kind (memtrace.LOAD_KINDS): the loads fed to the cache model
 
 
@@ -134,7 +135,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     n_levels = len(preset.levels)
     tally = np.zeros((mt.SITES, 2), np.int64)
     levels_hit = np.zeros((mt.SITES, n_levels + 1), np.int64)
-    lanes = np.zeros(6, np.int64)
+    lanes = np.zeros(4, np.int64)
     loads = np.zeros((n_all, mt.SITES), np.int32)
     views = (nodes_f, nodes_u, tris_f, tris_u, tris_d, tf, nt)
     state = (fst, ist, loc_link, loc_t, g_link, g_t)
@@ -148,7 +149,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
         mt.run_kernel(rays, warp, preset.units, preset.resident_warps, preset.block_warps, bounded, use_global, cap,
                       any_hit, cap_g, lay.branching, net, *views, *state, *sites, *model)
 
-    kernels, sort_bytes, ray_steps = 0, 0, 0
+    kernels, sort_bytes, ray_steps, carried = 0, 0, 0, 0
     if n and not layer:
         launch(order, False, False, cap_g)
         kernels = 1
@@ -165,12 +166,13 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
             launch(order, True, True, cap_local)
             kernels += 1
             ray_steps += n_active
-            pushed, improved, pushes, holders = (int(x) for x in lanes[2:6] - before[2:6])
+            pushed, improved = (int(x) for x in lanes[2:4] - before[2:4])
             keys = mt.next_treelets(order, ist, finished)
             prev_pos[order] = np.arange(len(order))  # (each ray's record, where this step wrote it)
             done = int(np.count_nonzero(keys == finished))
             last = done == n_active
-            sort_bytes += sort_traffic(n_active, pushes, pushed, improved, done, holders, sort, last)
+            sort_bytes += sort_traffic(n_active, pushed, improved, done, sort, last)
+            carried += n_active - done
             if last:
                 break
             # block_mkperm is a stable counting sort; finished rays go last and are dropped.
@@ -187,7 +189,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     t[hit] = fst[hit, mt.F_T]
     work = {name: np.where(valid, ist[:, col], 0) for name, col in (
         ("inner_nodes", mt.I_INNER), ("leaves", mt.I_LEAF), ("triangles", mt.I_TRI), ("iterations", mt.I_ITER),
-        ("steps", mt.I_STEPS))}
+        ("steps", mt.I_STEPS), ("entries_written", mt.I_SPILL), ("hits_written", mt.I_HITW))}
     kinds = {kind: sites for kind, (sites, _) in mt.LOAD_KINDS.items()}
     kinds["ray"] = tuple(mt.S_START + k for k in ((0,) if layer else range(PER_RAY_LOADS)))
     kinds["state"] = (mt.S_START + 1,) if layer else ()
@@ -199,7 +201,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
                         branching=lay.branching, tally=tally,
                         levels_hit=levels_hit, warp_iterations=int(lanes[0]), lane_iterations=int(lanes[1]),
                         kernels=kernels, sort_bytes=sort_bytes, ray_steps=ray_steps,
-                        pushed=int(lanes[2]), seconds=time.perf_counter() - t0)
+                        pushed=int(lanes[2]), carried=carried, seconds=time.perf_counter() - t0)
 
 
 # -- one row of numbers ------------------------------------------------------------------------------
@@ -241,6 +243,7 @@ class LocalityRow:
     steps_per_ray: float = 0.0          # kernel calls a ray took part in (wavefront steps and the tail)
     sort_bytes_per_ray_step: float = 0.0  # sort_bytes over the rays of every wavefront step
     pushed_per_ray_step: float = 0.0    # entries pushed and written back, per ray and wavefront step
+    carried_per_ray_step: float = 0.0   # the share of a step's rays that go on (write a state record)
     # The limits of a step design on layer rows (steptraffic.limits; None on per_ray rows).
     break_even_bytes_per_ray_step: float | None = None
     lower_bound_bytes_per_ray_step: float | None = None
@@ -294,6 +297,7 @@ def row(kind: str, rep: ReplayResult, treelet_height: int, sampled_from: int | N
         branching=rep.branching, steps_per_ray=float(rep.work["steps"].sum()) / n,
         sort_bytes_per_ray_step=rep.sort_bytes / rep.ray_steps if rep.ray_steps else 0.0,
         pushed_per_ray_step=rep.pushed / rep.ray_steps if rep.ray_steps else 0.0,
+        carried_per_ray_step=rep.carried / rep.ray_steps if rep.ray_steps else 0.0,
         sampled_from=sampled_from, seconds=rep.seconds, trace_exact=None if check is None else check.exact,
         preset_params=rep.preset.as_dict())
 

@@ -48,8 +48,8 @@ _FLT_MAX = np.float32(3.4028234663852886e38)  # walk's clamp of a hit child's en
 F_O, F_D, F_INV, F_SX, F_SY, F_SZ, F_T, F_U, F_V = 0, 3, 6, 9, 10, 11, 12, 13, 14
 F_COLS = 16
 (I_KX, I_KY, I_KZ, I_PRIM, I_LINK, I_SP, I_TRELET, I_DONE, I_INNER, I_LEAF, I_TRI, I_ITER, I_STEPS,
- I_TRI_CUR, I_TRI_END, I_NL, I_ACTIVE, I_NEXT, I_HITS, I_PUSHES) = range(20)
-I_COLS = 20
+ I_SPILL, I_HITW, I_TRI_CUR, I_TRI_END, I_NL, I_ACTIVE, I_NEXT, I_HITS) = range(21)
+I_COLS = 21
 
 # -- load sites (one load instruction each) ----------------------------------------------------------
 S_TRI, S_LOC_R_LINK, S_LOC_R_T, S_STACK_LINK, S_STACK_T, S_NODE_TRELET, S_TF, S_NODE, S_LOC_W_LINK, S_LOC_W_T = range(10)
@@ -111,7 +111,7 @@ def setup_rays(o, d, fst, ist, tmax):
         ist[i, I_SP] = 0
         ist[i, I_TRELET] = 0
         ist[i, I_DONE] = 0
-        for c in range(I_INNER, I_STEPS + 1):
+        for c in range(I_INNER, I_HITW + 1):  # the work counters
             ist[i, c] = 0
 
 
@@ -244,6 +244,8 @@ def iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, t
             fst[s, F_T], fst[s, F_U], fst[s, F_V] = t, u, v
             ist[s, I_PRIM] = prim
             ist[s, I_HITS] += 1  # (a layer step writes each closer hit to the results at once)
+            if use_global:  # (so does the tail: the layer modes' kernels, never per_ray's)
+                ist[s, I_HITW] += 1
         ist[s, I_TRI_CUR] = tri + 1
         ist[s, I_TRI] += 1
         if any_hit and closer:
@@ -338,7 +340,6 @@ def iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, t
                 loc_link[ls, slot] = wlinks[j + 1]
                 loc_t[ls, slot] = wkeys[j + 1]
             nl += n_push
-            ist[s, I_PUSHES] += n_push
     else:
         slot = nl if push else cap
         req[S_LOC_W_LINK] = slot
@@ -347,7 +348,6 @@ def iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, t
         loc_t[ls, slot] = far_t
         if push:
             nl += 1
-            ist[s, I_PUSHES] += 1  # (a layer step writes each push to its push buffer at once)
     # -- a leaf: its triangles from the next iteration on --
     if active and link != _POP and (link & _LEAF) != 0:
         ist[s, I_TRI_CUR] = link & _FIRST
@@ -371,21 +371,20 @@ def _start_lane(s, ist):
     ist[s, I_NEXT] = ist[s, I_TRELET]
     ist[s, I_STEPS] += 1
     ist[s, I_HITS] = 0
-    ist[s, I_PUSHES] = 0
 
 
 @numba.njit(cache=True, inline="always")
 def _write_back(s, ls, ist, loc_link, loc_t, g_link, g_t):
-    """wavefront.trace's write-back for one ray whose step ended and that goes on: the entries it
-    pushed in the step go above its global stack (done as the lane ends, not after the kernel:
-    nothing else reads that ray's stack in between, and so the local stacks are per lane, not per
-    ray). Returns how many."""
+    """walk's spill for one ray whose step ended and that goes on: the entries it still holds go
+    above its global stack as its lane ends, as the step kernel writes them (so the local stacks
+    are per lane, not per ray). Returns how many."""
     nl = ist[s, I_NL]
     sp = ist[s, I_SP]
     for k in range(nl):
         g_link[s, sp + k] = np.uint32(loc_link[ls, k])
         g_t[s, sp + k] = loc_t[ls, k]
     ist[s, I_SP] = sp + nl
+    ist[s, I_SPILL] += nl
     return nl
 
 
@@ -418,9 +417,8 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
     per site into segments (transactions), and each transaction is one access to the cache model.
     tally[site] += (transactions, lane requests); levels_hit[site, level] += transactions served by
     that level (last column: DRAM); lanes_out += (warp-iterations, active lane-iterations, entries
-    written back, closer hits found,
-    entries pushed, rays that hold entries at a bounded step's end). In a bounded step (a wavefront step) the
-    entries each ray that goes on pushed are written back to its global stack when its lane ends."""
+    written back, closer hits found). In a bounded step (a wavefront step) the entries each ray
+    that goes on still holds are written back to its global stack when its lane ends (walk's spill)."""
     n = len(order)
     n_warps = (n + W - 1) // W
     # Each unit's warps, in launch order.
@@ -485,12 +483,9 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
                         going += 1
                     else:
                         lanes_out[3] += ist[s, I_HITS]
-                        lanes_out[4] += ist[s, I_PUSHES]
                         if bounded and ist[s, I_DONE] == 0:
                             held = _write_back(s, ls, ist, loc_link, loc_t, g_link, g_t)
                             lanes_out[2] += held
-                            if held > 0:
-                                lanes_out[5] += 1
                 lanes_out[0] += 1
                 lanes_out[1] += live
                 for k in range(S_START + n_start):

@@ -6,32 +6,20 @@ from typing import NamedTuple
 
 import drjit as dr
 
-# The one "no hit" value: the primitive of a ray that hit nothing (uint32), and the instance of
-# a ray that hit nothing or is not inside an instance.
 
 class EntryStack(NamedTuple):
     """The global entry stack of a wavefront trace: entries pushed in earlier steps, `rows` per
-    ray slot (entry k of slot i at i * rows + k), link and entry distance in two arrays."""
+    ray slot (entry k of slot i at i * rows + k), link and entry distance in two arrays. A step's
+    kernel reads it through one EntryStack and writes the entries its rays still hold through a
+    second over the same memory (wavefront.trace; walk's spill)."""
 
     link: object  # UInt32 (slots * rows)
     t: object     # Float (slots * rows)
     rows: int
 
 
-class PushBuffer(NamedTuple):
-    """Where a wavefront step's kernel writes each entry a ray pushes, as it pushes it, `rows` per
-    lane (local stack slot k of the step's lane j at j * rows + k): at the step's end a lane's
-    first `nl` rows are the entries its ray still holds, which a small kernel over the step's
-    lanes moves above their global stacks (wavefront.trace). Not the global stack itself: a kernel
-    that pops from the stack and pushes into it would read and write one array, which Dr.Jit
-    copies whole first (copy-on-write), and through a zero-copy alias the hits went wrong
-    (measured: 42 of 40,000 bunny rays; the kernel's arrays are `noalias` to LLVM)."""
-
-    link: object  # UInt32 (lanes * rows)
-    t: object     # Float (lanes * rows)
-    rows: int
-
-
+# The one "no hit" value: the primitive of a ray that hit nothing (uint32), and the instance of
+# a ray that hit nothing or is not inside an instance.
 MISS = 0xFFFFFFFF
 
 # What a ray carries between wavefront steps (the layer modes): one 32-byte record per ray
@@ -39,8 +27,9 @@ MISS = 0xFFFFFFFF
 #   t        float32  closest hit distance so far (culls entries; bounds the slab tests)
 #   prim     uint32   its primitive (of two hits at the same t the lower id wins)
 #   link     uint32   where the ray goes on: a node, leaf or exit link, or POP
-#   sp       uint32   the depth of its entry stack in global memory, the entries it pushed in the
-#                     step that wrote the record included (they are moved there after the step)
+#   sp       uint32   the depth of its entry stack in global memory, the entries it still held at
+#                     the end of the step that wrote the record included (written there by that
+#                     step's kernel as the ray's walk ended)
 #   slot     uint32   its ray: which ray record, entry-stack rows and results are its own
 #   treelet  uint32   the treelet of its next step: its sort key
 #   inst     uint32   instanced layouts: the instance it is inside (else unused)
@@ -54,8 +43,13 @@ LEAN_STATE_BYTES = 4 * len(LEAN_STATE)   # what the next step needs: 24 bytes ..
 STATE_RECORD_WORDS = 8
 STATE_RECORD_BYTES = 4 * STATE_RECORD_WORDS  # ... stored in a 32-byte record (written whole)
 # Work counted per ray when statistics are asked for: RayState field -> Results/Hits name.
+# The last two are the stores a wavefront step makes besides its state record and sort key: the
+# entries a ray still holds at a step's end, written above its global stack (walk's spill), and
+# the closer hits written by slot as they are found (steps and tail). locality.check_trace holds
+# them against the replay, whose between-step bytes (steptraffic.sort_traffic) count them.
 WORK = {"n_inner": "inner_nodes", "n_leaf": "leaves", "n_tri": "triangles", "n_iter": "iterations",
-        "n_steps": "steps", "n_stack": "stack_reads", "n_treelet": "treelet_reads", "n_root": "root_reads"}
+        "n_steps": "steps", "n_stack": "stack_reads", "n_treelet": "treelet_reads", "n_root": "root_reads",
+        "n_spill": "entries_written", "n_hitw": "hits_written"}
 # ... and per level in an instanced layout: the inner nodes of those that were of the top level
 # (the rest were inside instances) and the instances entered.
 INSTANCE_WORK = {"n_top": "top_inner_nodes", "n_enter": "instance_entries"}
@@ -175,6 +169,8 @@ class RayState:
     n_stack: object = None    # global entry-stack entries read (each: link and distance)
     n_treelet: object = None  # node-treelet lookups (a popped global entry's treelet)
     n_root: object = None     # exit roots looked up (treelet_first)
+    n_spill: object = None    # entries written above the global entry stack at steps' ends
+    n_hitw: object = None     # closer hits written to the results by slot as found
     n_top: object = None
     n_enter: object = None
     inst: object = None

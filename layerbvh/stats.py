@@ -29,7 +29,8 @@ class TraceStats:
     time_traverse_s: float = 0.0
     time_treelet_s: float = 0.0
     time_leaf_s: float = 0.0
-    time_other_s: float = 0.0
+    time_other_s: float = 0.0  # host-timed kernels between steps besides the sort: none since the
+    # held-entry move went into the step kernel (PERFORMANCE.md entry 45); kept for old reports
     time_split_estimated: bool = True
     time_total_s: float = 0.0
     work_bytes: int = 0

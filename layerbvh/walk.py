@@ -6,7 +6,7 @@ import drjit as dr
 from .geometry import FAR_SCALE, hit_children, hit_children_wide, hit_triangle, setup_ray, to_object_space
 from .layout import (EXIT_BIT, INSTANCE_TAG, LEAF_BIT, LEAF_FIRST_MASK, LEAVE, PAYLOAD_MASK, POP, DeviceLayout, leaf_range,
                      node_format)
-from .state import MISS, EntryStack, PushBuffer, RayState
+from .state import MISS, EntryStack, RayState
 
 # Sorting networks that order a wide node's children by entry distance (compare-exchange pairs,
 # Knuth, TAOCP vol. 3, 5.3.4: 5 comparators for 4 inputs, 19 for 8, both optimal).
@@ -21,7 +21,7 @@ _FLT_MAX = 3.4028234663852886e38
 
 
 def walk(m, lay: DeviceLayout, rays, s: RayState, *, stack: EntryStack | None, cap: int, bounded: bool,
-         any_hit: bool, count_work: bool = True, active=None, results=None, push: PushBuffer | None = None):
+         any_hit: bool, count_work: bool = True, active=None, results=None, spill: EntryStack | None = None):
     """Advance every ray of `s`, nearest child first, until it finishes or (when `bounded`)
     is about to continue in another treelet than `s.treelet`. `rays` (state.SlotRays,
     state.RayRecords or state.DirectRays) gives each slot's origin and direction.
@@ -45,11 +45,11 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, *, stack: EntryStack | None, c
     In a wavefront step (the layer modes, issue 40) the kernel keeps its own books, so that
     between steps a ray moves only its state record (state.StateRecords): with `results` given, a ray
     writes each closer hit's t, u, v and prim there by slot as it finds it (so `s` need not carry
-    u and v); with `push` (state.PushBuffer), each push is also written to the lane's rows of the
-    push buffer as it happens, so at the end its first `nl` rows hold the entries the ray still
-    holds (never all `cap` local slots read out); the count returned is 0 for a ray that
-    finished, the state's sp already counts the entries held (they go above its global stack
-    after the step), and the local entries returned are none.
+    u and v); with `spill` (the global stack's write alias, wavefront.trace), a ray that goes on
+    writes the entries it still holds above its global stack when its walk ends, so an entry
+    consumed within the step never leaves the kernel's local stack, and no kernel moves entries
+    between steps. The count returned is then 0 for a ray that finished, the state's sp already
+    counts the entries held, and the local entries returned are none.
 
     In a bounded step, an entry's treelet is known without a lookup where it matters: entries
     pushed in this step belong to the step's treelet unless they are exits (which name theirs);
@@ -66,10 +66,10 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, *, stack: EntryStack | None, c
     primitive id, in every mode.
     """
     out, done, nl, local, u_best, v_best = _walk(m, lay, rays, s, stack, cap, bounded, any_hit, count_work, active,
-                                                 results, push)
+                                                 results, spill)
     if results is None:
         out.u, out.v = u_best, v_best
-    if push is not None:  # (sp then counts the entries the ray holds: they go above its global stack)
+    if spill is not None:  # (sp then counts the entries the ray holds: the kernel wrote them above it)
         nl, local = dr.select(done, 0, nl), []
         out.sp = out.sp + nl
     return out, done, nl, local
@@ -77,12 +77,10 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, *, stack: EntryStack | None, c
 
 @dr.syntax
 def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap: int, bounded: bool, any_hit: bool,
-          count_work: bool, active, results, pbuf: PushBuffer | None):
+          count_work: bool, active, results, spill: EntryStack | None):
     """`walk`'s loop (Dr.Jit's @syntax rewrite takes positional parameters only); returns the
     state without u and v, done, the local entry count and entries, and u, v apart. The hits
-    (`results`) and pushed entries (`pbuf`) are written as they happen, inside the loop: written
-    after it, each scatter became a kernel of its own that ran the whole loop again (measured:
-    14 kernels per step instead of one)."""
+    (`results`) are written as they happen, inside the loop; the held entries (`spill`) after it."""
     world_o, world_d = rays.load(s.slot)
     instanced = lay.instances is not None
     wide = lay.branching > 2  # (a plain int and bool: the loop's state takes no dataclass)
@@ -97,7 +95,6 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
     link, sp = m.UInt32(s.link), m.UInt32(s.sp)
     t_best = m.Float(s.t)
     n_lanes = dr.width(s.link)
-    pbase = dr.arange(m.UInt32, n_lanes) * pbuf.rows if pbuf is not None else None
     u_best, v_best = (m.Float(s.u), m.Float(s.v)) if s.u is not None else \
         (dr.zeros(m.Float, n_lanes), dr.zeros(m.Float, n_lanes))
     prim_best = m.UInt32(s.prim)
@@ -109,6 +106,8 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
     # Loads per kind besides node records and triangles (n_inner, n_tri): global entry-stack
     # entries, node-treelet lookups, exit roots; locality.check_trace holds them against the replay.
     n_stack, n_treelet, n_root = (m.UInt32(c) if count_work else zero for c in (s.n_stack, s.n_treelet, s.n_root))
+    # ... and the stores a wavefront step makes as it goes (state.WORK): entries spilled, hits written.
+    n_spill, n_hitw = (m.UInt32(c) if count_work else zero for c in (s.n_spill, s.n_hitw))
     tri_cur, tri_end = m.UInt32(0), m.UInt32(0)
     done = m.Bool(False)
     next_treelet = m.UInt32(s.treelet)
@@ -118,12 +117,15 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
     while active:
         if count_work:
             n_iter += 1
+        walking = m.Bool(active)  # (the rays whose walk may end in this iteration)
 
         # -- a triangle of the current leaf --
         if tri_cur < tri_end:
             closer, t_best, u_best, v_best, prim_best, hit_inst = _test_triangle(
                 m, lay, ray, tri_cur, active, t_best, u_best, v_best, prim_best, in_inst, hit_inst, instanced,
                 results, s.slot)
+            if count_work and results is not None:
+                n_hitw += dr.select(closer, m.UInt32(1), m.UInt32(0))
             tri_cur += 1
             if count_work:
                 n_tri += 1
@@ -206,9 +208,9 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
                     next_treelet = link & PAYLOAD_MASK
                     active &= False
         if wide:
-            nl = _push_wide(m, loc_link, loc_t, nl, n_push, push_links, push_ts, cap, pbuf, pbase)
+            nl = _push_wide(m, loc_link, loc_t, nl, n_push, push_links, push_ts, cap)
         else:
-            nl = _push_binary(m, loc_link, loc_t, nl, push, far_link, far_t, cap, pbuf, pbase)
+            nl = _push_binary(m, loc_link, loc_t, nl, push, far_link, far_t, cap)
 
         # -- a leaf: its triangles from the next iteration on (an instance link waits for the
         # next iteration, which enters it) --
@@ -222,16 +224,43 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
             if count_work:
                 n_leaf += 1
 
+        if spill is not None:  # -- a bounded step's end: the entries the ray holds, written back --
+            n_spill = _spill_held(m, spill, loc_link, loc_t, cap, walking & ~active & ~done, base + sp, nl, n_spill,
+                                  count_work)
+
     out = RayState(t=t_best, prim=prim_best, link=link, sp=sp, slot=s.slot, treelet=next_treelet)
     if instanced:
         out.inst, out.hit_inst = in_inst, hit_inst
     if count_work:
         out.n_inner, out.n_leaf, out.n_tri, out.n_iter, out.n_steps = n_inner, n_leaf, n_tri, n_iter, n_steps
         out.n_stack, out.n_treelet, out.n_root = n_stack, n_treelet, n_root
+        out.n_spill, out.n_hitw = n_spill, n_hitw
         if instanced:
             out.n_top, out.n_enter = n_top, n_enter
     local = [(m.UInt32(loc_link[k]), m.Float(loc_t[k])) for k in range(cap)]
     return out, done, nl, local, u_best, v_best
+
+
+@dr.syntax
+def _spill_held(m, spill: EntryStack, loc_link, loc_t, cap: int, ending, top, nl, n_spill, count_work: bool):
+    """A wavefront step's write-back, on the iteration where a ray's walk ends and it goes on
+    (`ending`): its first `nl` local entries go to rows `top`.. of its global stack. The kernel
+    reads that stack too (its pops), through the stack itself; `spill` maps the same memory
+    (wavefront.trace), so Dr.Jit does not copy the stack whole before writing (copy-on-write).
+    That is safe because a ray's reads all come before its writes (they feed the walk whose end
+    gives `top` and the entries), and no other ray touches its rows. (Entry 33 of PERFORMANCE.md:
+    written as each push happened, an alias gave wrong hits, a pop re-reading a slot the kernel
+    had pushed, the two arrays being `noalias` to LLVM; written after the loop, each local slot
+    read there made Dr.Jit run the whole loop again in a kernel of its own.) Returns n_spill with
+    the stores counted (statistics runs)."""
+    if ending:  # (a branch: a packet where no ray's walk ends skips the stores)
+        for k in range(cap):
+            keep = ending & (m.UInt32(k) < nl)
+            dr.scatter(spill.link, m.UInt32(loc_link[k]), top + k, keep)
+            dr.scatter(spill.t, m.Float(loc_t[k]), top + k, keep)
+            if count_work:
+                n_spill += dr.select(keep, m.UInt32(1), m.UInt32(0))
+    return n_spill
 
 
 @dr.syntax
@@ -320,33 +349,26 @@ def _enter_instance(m, lay: DeviceLayout, active, tri_cur, tri_end, link, in_ins
 
 
 @dr.syntax
-def _push_wide(m, loc_link, loc_t, nl, n_push, push_links, push_ts, cap: int, pbuf, pbase):
-    """A wide node's pushes: `n_push` entries, push_links/push_ts[j] to stack position
-    nl + n_push - 1 - j (j = 0 on top), also to the push buffer in a wavefront step; the new
-    count. A lane that pushes nothing writes the spare slot `cap`."""
+def _push_wide(m, loc_link, loc_t, nl, n_push, push_links, push_ts, cap: int):
+    """A wide node's pushes: `n_push` entries, push_links/push_ts[j] to local stack position
+    nl + n_push - 1 - j (j = 0 on top); the new count. A lane that pushes nothing writes the
+    spare slot `cap`."""
     if n_push > 0:  # a packet where no lane pushes skips the K - 1 writes (lanes that
         # do not take this branch have n_push = 0 and would write the spare slot anyway)
         for j in range(len(push_links)):
             slot = dr.select(m.UInt32(j) < n_push, nl + n_push - (j + 1), cap)
             loc_link[slot] = push_links[j]
             loc_t[slot] = push_ts[j]
-            if pbuf is not None:
-                dr.scatter(pbuf.link, push_links[j], pbase + slot, m.UInt32(j) < n_push)
-                dr.scatter(pbuf.t, push_ts[j], pbase + slot, m.UInt32(j) < n_push)
     return nl + n_push
 
 
 @dr.syntax
-def _push_binary(m, loc_link, loc_t, nl, push, far_link, far_t, cap: int, pbuf, pbase):
-    """A binary node's push of its farther child (where `push`), also to the push buffer in a
-    wavefront step; the new count. A lane that pushes nothing writes the spare slot `cap`."""
+def _push_binary(m, loc_link, loc_t, nl, push, far_link, far_t, cap: int):
+    """A binary node's push of its farther child (where `push`) to the local stack; the new
+    count. A lane that pushes nothing writes the spare slot `cap`."""
     slot = dr.select(push, nl, cap)
     loc_link[slot] = far_link
     loc_t[slot] = far_t
-    if pbuf is not None:
-        if push:  # (a branch: a packet where no lane pushes skips the stores)
-            dr.scatter(pbuf.link, far_link, pbase + slot, push)
-            dr.scatter(pbuf.t, far_t, pbase + slot, push)
     return dr.select(push, nl + 1, nl)
 
 

@@ -7,8 +7,8 @@ import drjit as dr
 
 from .inputs import RayBatch
 from .layout import DeviceLayout, treelet_levels
-from .state import (STATE_RECORD_BYTES, DirectRays, EntryStack, PushBuffer, RayRecords, RayState,
-                    Results, SlotRays, StateRecords)
+from .state import (STATE_RECORD_BYTES, DirectRays, EntryStack, RayRecords, RayState, Results, SlotRays,
+                    StateRecords)
 from .stats import TraceStats
 from .walk import walk
 
@@ -97,11 +97,13 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
     st_link = dr.empty(m.UInt32, n * cap_global)
     st_t = dr.empty(m.Float, n * cap_global)
     stack = EntryStack(st_link, st_t, cap_global)
-    push = PushBuffer(dr.empty(m.UInt32, n * cap_local), dr.empty(m.Float, n * cap_local), cap_local)
+    # The same memory as a second array, which the step kernels write (walk's `spill`) while they
+    # read the stack itself: Dr.Jit would copy an array a kernel both reads and writes.
+    spill = EntryStack(_alias(st_link), _alias(st_t), cap_global)
     finished = lay.treelet_count  # bucket after every treelet: finished rays sort last
     # Per-tree numbers enter the kernels opaque (kernel parameters, not literals), so one
     # compiled kernel serves every tree (issue 39).
-    finished_key, stride = dr.opaque(m.UInt32, finished), dr.opaque(m.UInt32, cap_global)
+    finished_key = dr.opaque(m.UInt32, finished)
     buckets = 1 << max(1, (finished).bit_length())
     work = tuple(f for f in s.fields() if f not in StateRecords.FIELDS)  # statistics: the work counters
     # The states as records (state.StateRecords), read by the first step in order.
@@ -126,50 +128,32 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
             stats.steps += 1
             break
         # The step's kernel: it gathers each ray's state record by the last sort's permutation,
-        # walks, writes the hits it improved (by slot) and the entries each ray pushed (into the
-        # push buffer, by lane) as it goes, and at its end, in lane order, every lane's sort key
-        # and held-entry count, the record of each ray that goes on and the stack top of each that
-        # holds entries (a finished ray writes no record: on paper_mix most rays finish in step 1).
-        out, done, nl, _ = walk(m, lay, rays, s, stack=stack, cap=cap_local, bounded=True, any_hit=any_hit,
-                                count_work=count_work, results=res, push=push)
+        # walks, writes the hits it improved (by slot) as it goes, and at its end, in lane order,
+        # every lane's sort key, the record of each ray that goes on and, above that ray's global
+        # stack, the entries it still holds (a finished ray writes no record: on paper_mix most
+        # rays finish in step 1). Nothing else moves between steps but the sort.
+        out, done, _, _ = walk(m, lay, rays, s, stack=stack, cap=cap_local, bounded=True, any_hit=any_hit,
+                               count_work=count_work, results=res, spill=spill)
         keys = out.treelet = dr.select(done, finished_key, out.treelet)
         n_step = dr.width(keys)
-        # Where each holder's entries go (the record's sp counts them); written for holders only.
-        top = dr.empty(m.UInt32, n_step)
-        dr.scatter(top, out.slot * stride + out.sp - nl, dr.arange(m.UInt32, n_step), nl > 0)
         rec = StateRecords.write(m, out, ~done)
         counters = [getattr(out, f) for f in work]
-        # The rays that finished and the most entries a ray holds, counted by the kernel itself
-        # (two atomics on one word each, not two more passes over the keys and counts).
-        n_done_w, most_w = dr.zeros(m.UInt32, 1), dr.zeros(m.UInt32, 1)  # (one reduction kind per array)
+        # The rays that finished, counted by the kernel itself (an atomic on one word, not another
+        # pass over the keys).
+        n_done_w = dr.zeros(m.UInt32, 1)
         dr.scatter_reduce(dr.ReduceOp.Add, n_done_w, m.UInt32(1), m.UInt32(0), done)
-        dr.scatter_reduce(dr.ReduceOp.Max, most_w, nl, m.UInt32(0))
         if count_work:
             res.write(out, done)
-        dr.eval(rec, keys, nl, top, n_done_w, most_w, *counters, *res.arrays())
+        dr.eval(rec, keys, n_done_w, *counters, *res.arrays())
         del done, out  # (unevaluated, `done` would hold the step's graph, whose reads of the entry
-        # stacks make Dr.Jit copy them whole before the scatters below: copy-on-write)
-        n_done, most = int(n_done_w[0]), int(most_w[0])
+        # stacks make Dr.Jit copy them whole before later scatters: copy-on-write)
+        n_done = int(n_done_w[0])
         tb = _sync()
         n_active -= n_done
         if n_active == 0:
             stats.steps += 1
             stats.time_traverse_s += tb - ta
             break
-        # The entries each lane's ray still holds go above its global stack (one kernel, over the
-        # step's lanes in their order; one gather and one scatter per array over every (lane, k)
-        # pair, masked: a scatter per k made Dr.Jit launch a kernel per scatter).
-        # (pairs beyond the most any ray holds are all masked; rounded up to a power of two and
-        # passed opaque, one kernel serves every step: a literal `most` compiled one per value)
-        shift = max(most - 1, 0).bit_length()
-        pair = dr.arange(m.UInt32, n_step << shift)
-        lane, k = pair >> dr.opaque(m.UInt32, shift), pair & dr.opaque(m.UInt32, (1 << shift) - 1)
-        mask = k < dr.gather(m.UInt32, nl, lane)
-        pos = dr.gather(m.UInt32, top, lane, mask) + k
-        dr.scatter(st_link, dr.gather(m.UInt32, push.link, lane * cap_local + k, mask), pos, mask)
-        dr.scatter(st_t, dr.gather(m.Float, push.t, lane * cap_local + k, mask), pos, mask)
-        dr.eval(st_link, st_t)
-        td = _sync()
         # The order of the next step: by treelet (a stable counting sort; finished rays last, left
         # out), or the rays that go on in their order. Only this permutation is written: the next
         # step gathers each ray's record through it.
@@ -182,16 +166,22 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         for f, c in zip(work, counters):
             setattr(s, f, dr.gather(m.UInt32, c, perm))
         te = _sync()
-        # the records read and those written (both alive during a step), keys, counts, tops, permutation
-        peak = max(peak, n_step * (2 * STATE_RECORD_BYTES + 16 + 8 * len(work)))
+        # the records read and those written (both alive during a step), keys, permutation
+        peak = max(peak, n_step * (2 * STATE_RECORD_BYTES + 8 + 8 * len(work)))
         stats.steps += 1
         stats.time_traverse_s += tb - ta
-        stats.time_other_s += td - tb
-        stats.time_sort_s += te - td
-    # entry stacks, push buffer, ray records, ray in/out arrays
-    stats.work_bytes = (peak + n * (cap_global + cap_local) * ENTRY_BYTES + n * 4 * RayRecords.STRIDE
+        stats.time_sort_s += te - tb
+    # entry stacks, ray records, ray in/out arrays
+    stats.work_bytes = (peak + n * cap_global * ENTRY_BYTES + n * 4 * RayRecords.STRIDE
                         + n * 4 * 10)
     return res, stats
+
+
+def _alias(a):
+    """A second Dr.Jit array over the memory of the evaluated array `a` (zero-copy). Dr.Jit does
+    not know they share it: use it only where a kernel's reads through `a` and writes through the
+    alias cannot meet (walk's spill)."""
+    return dr.detail.import_tensor(a, False).array
 
 
 def trace_inline(m, lay: DeviceLayout, o, d, tmax, active, *, any_hit: bool) -> RayState:

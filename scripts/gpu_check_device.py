@@ -79,7 +79,7 @@ def _time_kind(bvh, o, d, tmax, any_hit: bool, runs: int, want=None, rows: dict 
 
     def trace(mode):
         q = (bvh.occluded if any_hit else bvh.trace)(O, D, T, mode=mode, stats=False)
-        last[mode] = q.stats  # steps and the host's split of the time (kernel, stack moves, sort)
+        last[mode] = q.stats  # steps and the host's split of the time (kernels, sort)
         out = q.occluded if any_hit else q.prim
         dr.eval(out)
         return out
@@ -100,8 +100,7 @@ def _time_kind(bvh, o, d, tmax, any_hit: bool, runs: int, want=None, rows: dict 
     med = {mode: statistics.median(t) for mode, t in times.items()}
     r = {"rays": len(o), "seconds": med, "measured_sorted_over_per_ray": med["per_ray"] / med["layer_sorted"],
          "modes_disagree": int(np.count_nonzero(got["per_ray"] != got["layer_sorted"])),
-         "split": {mode: {"steps": st.steps, "traverse_s": st.time_traverse_s, "stack_moves_s": st.time_other_s,
-                          "sort_s": st.time_sort_s} for mode, st in last.items()}}
+         "split": {mode: {"steps": st.steps, "traverse_s": st.time_traverse_s, "sort_s": st.time_sort_s} for mode, st in last.items()}}
     if rows is not None:
         pr, so = rows["per_ray"], rows["layer_sorted"]
         r.update(model_dram_per_ray_over_sorted=pr["dram_bytes_per_ray"] / so["dram_bytes_per_ray"],
@@ -132,8 +131,8 @@ def _time_soup(configs, args) -> list[dict]:
                       f"{n / r['seconds']['layer_sorted'] / 1e6:15.2f} {r['measured_sorted_over_per_ray']:26.2f}  "
                       f"(hits per_ray vs sorted differ: {r['modes_disagree']})", flush=True)
                 sp = r["split"]["layer_sorted"]
-                print(f"{'':15} sorted: {sp['steps']} steps; kernels {sp['traverse_s'] * 1e3:.2f} ms, stack moves "
-                      f"{sp['stack_moves_s'] * 1e3:.2f} ms, sort {sp['sort_s'] * 1e3:.2f} ms; per_ray "
+                print(f"{'':15} sorted: {sp['steps']} steps; kernels {sp['traverse_s'] * 1e3:.2f} ms, "
+                      f"sort {sp['sort_s'] * 1e3:.2f} ms; per_ray "
                       f"{r['split']['per_ray']['traverse_s'] * 1e3:.2f} ms", flush=True)
     return out
 

@@ -42,8 +42,9 @@ def test_trace_follows_the_kernel(request, mesh_name, kind, any_hit):
         chk = L.check_trace(bvh, o, d, tmax, any_hit, rep)
         assert chk.exact, (f"{mode}: {chk.hit_mismatches} hits, {chk.work_mismatches} work counts and "
                            f"{chk.load_mismatches} loads differ")
-        if mode != "per_ray":  # (the check covers loads the layer steps make)
+        if mode != "per_ray":  # (the check covers the loads and stores the layer steps make)
             assert all(rep.loads[k].sum() > 0 for k in ("stack", "node_treelet", "exit_root", "state")), rep.loads
+            assert rep.work["entries_written"].sum() > 0 and rep.work["hits_written"].sum() > 0
         assert (rep.prim != layerbvh.MISS).mean() > (0.05 if any_hit else 0.2), "test rays should hit"
         if mode != "per_ray":
             assert rep.kernels > (1 if any_hit else 3), f"{mode} ran {rep.kernels} kernels: no wavefront steps"
@@ -72,6 +73,32 @@ def test_trace_follows_the_kernel_on_wide_trees(bunny, branching):
                 # every push j of a wide node writes its own local sites: the farthest ones too
                 far = mt.S_PUSH + 2 * (branching - 3)
                 assert rep.tally[far, 1] > 0 and rep.tally[far + 2:mt.S_START, 1].sum() == 0
+
+@pytest.mark.parametrize("mode", ["layer_sorted", "layer_unsorted"])
+def test_between_step_bytes_are_what_the_kernel_stored(bunny, mode):
+    """The replay's between-step bytes (steptraffic.sort_traffic) from what the kernel itself
+    reports: the rays of each step (stats.active_per_step), and per ray the held entries it wrote
+    above its global stack and the closer hits it wrote by slot (its store counters). Per step:
+    every lane's 4-byte key, a 32-byte state record per ray that goes on; between steps the sort
+    (keys read, permutation written; compaction: keys read, survivors written) and the
+    permutation read by the next step; 8 bytes per entry, 16 per hit. No tail: every ray
+    finishes in the steps, so every store counted is a step's."""
+    v, f = bunny
+    o, d, tmax = _rays(v, "incoherent")
+    bvh = layerbvh.build(v, f, branching=4, treelet_height=3, batch_rays=len(o), tail_rays=0, tail_fraction=0)
+    h = bvh.trace(o, d, tmax, mode=mode, stats=True)
+    n = h.stats.active_per_step
+    assert len(n) > 3 and h.stats.tail_rays == 0
+    want = 8 * int(np.sum(h.work["entries_written"])) + 16 * int(np.sum(h.work["hits_written"]))
+    for s, n_s in enumerate(n):
+        left = n[s + 1] if s + 1 < len(n) else 0
+        want += 4 * n_s + 32 * left
+        if left:
+            want += (8 * n_s if mode == "layer_sorted" else 4 * n_s + 4 * left) + 4 * left
+    rep = L.replay(bvh.layout, o, d, tmax, mode, False, 32, preset("gtx965m"), bvh.tail_rays, bvh.tail_fraction)
+    assert int(np.sum(h.work["entries_written"])) > len(o) // 4
+    assert rep.sort_bytes == want
+
 
 def _two_triangles():
     """Two triangles far apart (x < 0 and x > 0) in the plane z = 0, each its own leaf."""

@@ -15,23 +15,26 @@ DEFAULT_FOLDER = ROOT / "docs" / "bench" / "gpu_h200"  # the one GPU lent so far
 _HEAD = re.compile(r"K=(\d+) H=(\d+) (\S+): ([\d,]+) rays, (\d+) launches, kernels ([\d.]+) ms of ([\d.]+) ms wall")
 _LAUNCH = re.compile(r"\s+KernelType\.(\S+)\s+width\s+([\d,]+) ops\s+(\d+) in\s+(\d+) out\s+(\d+)\s+([\d.]+) ms")
 # The traversal kernel (walk's loop: several hundred IR operations) is the only launch that large;
-# the next largest, the stack move, state setup and gathers, have under 40.
+# the next largest, state setup and gathers (and the held-entry move of the listings made before
+# PERFORMANCE.md entry 45), have under 40.
 TRAVERSAL_OPS = 300
 
 
 def kernel_split(text: str) -> list[dict]:
     """Per (branching, height, mode) of a `gpu_check_device.py --kernels` listing: the GPU's time in
-    the traversal kernels, in the stack moves (the first JIT kernel after each step's traversal
-    kernel, over the step's (lane, entry) pairs), in the sort (MkPerm, and argsort's prefix sums
-    between its MkPerm passes) and in
-    the rest (state set-up, gathers, memsets), and the wall time the launches leave idle."""
+    the traversal kernels, in kernels between a step and its sort (the first JIT kernel after each
+    step's traversal kernel: until PERFORMANCE.md entry 45 the move of the entries each ray still
+    held, over the step's (lane, entry) pairs, as in the H200 listings of docs/bench/gpu_h200;
+    since then the step kernel writes them itself and nothing runs there), in the sort (MkPerm,
+    and argsort's prefix sums between its MkPerm passes) and in the rest (state set-up, gathers,
+    memsets), and the wall time the launches leave idle."""
     out, cur, prev = [], None, ""
     for line in text.splitlines():
         if m := _HEAD.match(line):
             k, h, mode, n, launches, total, wall = m.groups()
             cur = {"branching": int(k), "treelet_height": int(h), "mode": mode, "rays": int(n.replace(",", "")),
                    "launches": int(launches), "kernels_ms": float(total), "wall_ms": float(wall),
-                   "traversal_ms": 0.0, "steps": 0, "stack_ms": 0.0, "sort_ms": 0.0, "rest_ms": 0.0}
+                   "traversal_ms": 0.0, "steps": 0, "between_ms": 0.0, "sort_ms": 0.0, "rest_ms": 0.0}
             out.append(cur)
             prev = ""
         elif (m := _LAUNCH.match(line)) and cur is not None:
@@ -43,7 +46,7 @@ def kernel_split(text: str) -> list[dict]:
                 prev = "traversal"
                 continue
             if typ == "JIT" and prev == "traversal":
-                cur["stack_ms"] += ms
+                cur["between_ms"] += ms
                 prev = typ
             elif typ == "MkPerm" or (typ == "BlockPrefixReduce" and prev == "MkPerm"):
                 cur["sort_ms"] += ms  # (a prefix sum between two MkPerm passes is argsort's; one
@@ -90,9 +93,9 @@ def kernel_table(splits: list[dict]) -> str:
     rows = []
     for r in splits:
         rows.append([r["branching"], r["treelet_height"], r["mode"], f"{r['rays']:,}", r["launches"],
-                     f"{r['traversal_ms']:.1f} ({r['steps']})", f"{r['stack_ms']:.1f}", f"{r['sort_ms']:.1f}",
+                     f"{r['traversal_ms']:.1f} ({r['steps']})", f"{r['between_ms']:.1f}", f"{r['sort_ms']:.1f}",
                      f"{r['rest_ms']:.1f}", f"{r['host_gaps_ms']:.1f}", f"{r['wall_ms']:.1f}"])
-    return _md(["K", "H", "mode", "rays", "launches", "traversal kernels ms (launches)", "stack moves ms", "sort ms",
+    return _md(["K", "H", "mode", "rays", "launches", "traversal kernels ms (launches)", "between-step kernels ms", "sort ms",
                 "set-up, gathers ms", "host gaps ms", "wall ms"], rows)
 
 
@@ -117,8 +120,8 @@ def section(folder: Path) -> str:
         text = log.read_text()
         parts += [f"### Where the GPU's time goes: `{log.name}`", "",
                   f"`python3 scripts/gpu_check_device.py out/gpu_check --backend cuda --kernels RAYS --soup TRIS`; "
-                  "each launch's execution time from Dr.Jit's kernel history. Host gaps: wall time with no kernel running (tracing the step's kernel in Python, the two "
-                  "counts read back each step, the launches).", "", kernel_table(kernel_split(text)), ""]
+                  "each launch's execution time from Dr.Jit's kernel history. Host gaps: wall time with no kernel running (tracing the step's kernel in Python, the "
+                  "counts read back each step: two in these listings, one since PERFORMANCE.md entry 45; the launches).", "", kernel_table(kernel_split(text)), ""]
     return "\n".join(parts)
 
 
