@@ -13,8 +13,8 @@ from .bvh import build
 from .inputs import DEFAULT_BRANCHING, DEFAULT_TREELET_HEIGHT
 from .layout import LayerLayout, node_format, treelet_levels
 from .memmodel import Caches, Preset, preset as named_preset, with_segment
-from .state import MISS, STATE_RECORD_BYTES
-from .steptraffic import limits, sort_traffic
+from .state import MISS, StateRecords
+from .steptraffic import limits, result_traffic, sort_traffic
 from .tracecheck import TraceCheck, check_trace, same_as
 from .walk import SORT_NETWORKS
 from .wavefront import MODES, TAIL_FRACTION, TAIL_RAYS, stack_rows, takes_tail
@@ -47,6 +47,7 @@ class ReplayResult:
     pushed: int                     # entries the rays that went on pushed in the steps (written back)
     seconds: float
     carried: int = 0                # rays summed over the wavefront steps they went on from (a state record each)
+    result_bytes: int = 0           # bytes written to the results (steptraffic.result_traffic)
     loads: dict = None              # per ray and load kind (memtrace.LOAD_KINDS): the loads fed to the cache model
 
 
@@ -100,12 +101,18 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     sizes = {"nodes": lay.nodes.nbytes, "tris": lay.tris.nbytes, "treelet_first": lay.treelet_first.nbytes,
              "node_treelet": lay.node_treelet.nbytes, "stack_link": n_all * cap_g * 4, "stack_t": n_all * cap_g * 4,
              "local_link": local_words * 4, "local_t": local_words * 4}
+    # The state record's format, as wavefront.trace picks it (the replay flattens instances).
+    record_bytes = 4 * StateRecords.words(False, cap_g, n_all)
+    compact = record_bytes < 4 * StateRecords.words(True, cap_g, n_all)
     if layer:
         sizes["ray_records"] = n_all * RAY_RECORD_BYTES
         # A step reads its ray's record by slot and its state record where the step before wrote it
-        # (state.StateRecords: in that step's lane order), through the sort's permutation.
-        sizes["state_records"] = n_all * STATE_RECORD_BYTES
-        start = [("ray_records", RAY_RECORD_BYTES, mt.BY_SLOT), ("state_records", STATE_RECORD_BYTES, mt.BY_PREVIOUS_LANE)]
+        # (state.StateRecords: in that step's lane order), through the sort's permutation; from a
+        # compact record, the treelet of a node link (walk._record_treelet).
+        sizes["state_records"] = n_all * record_bytes
+        start = [("ray_records", RAY_RECORD_BYTES, mt.BY_SLOT), ("state_records", record_bytes, mt.BY_PREVIOUS_LANE)]
+        if compact:
+            start.append(("node_treelet", 4, mt.BY_LINK_NODE))
     else:
         sizes.update({f"ray_{k}": n_all * 4 for k in range(PER_RAY_LOADS)})
         start = [(f"ray_{k}", 4, mt.BY_SLOT) for k in range(PER_RAY_LOADS)]
@@ -166,12 +173,12 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
             launch(order, True, True, cap_local)
             kernels += 1
             ray_steps += n_active
-            pushed, improved = (int(x) for x in lanes[2:4] - before[2:4])
+            pushed = int(lanes[2] - before[2])
             keys = mt.next_treelets(order, ist, finished)
             prev_pos[order] = np.arange(len(order))  # (each ray's record, where this step wrote it)
             done = int(np.count_nonzero(keys == finished))
             last = done == n_active
-            sort_bytes += sort_traffic(n_active, pushed, improved, done, sort, last)
+            sort_bytes += sort_traffic(n_active, pushed, done, sort, last, record_bytes)
             carried += n_active - done
             if last:
                 break
@@ -196,12 +203,16 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     per_kind = {kind: [loads[:, k] for k in sites] for kind, sites in kinds.items() if sites}
     # (a kind's sites are loaded together, so each counts its loads once; replay() checks they agree)
     assert all((c == cs[0]).all() for cs in per_kind.values() for c in cs), "a load kind's sites disagree"
+    per_ray_loads = {kind: cs[0] for kind, cs in per_kind.items()}
+    if layer and compact:  # (the kernel counts a step's treelet lookup with the popped entries')
+        per_ray_loads["node_treelet"] = per_ray_loads["node_treelet"] + loads[:, mt.S_START + 2]
     return ReplayResult(mode=mode, warp=warp, preset=preset, rays=n, prim=prim, t=t, work=work,
-                        loads={kind: np.where(valid, cs[0], 0) for kind, cs in per_kind.items()},
+                        loads={kind: np.where(valid, c, 0) for kind, c in per_ray_loads.items()},
                         branching=lay.branching, tally=tally,
                         levels_hit=levels_hit, warp_iterations=int(lanes[0]), lane_iterations=int(lanes[1]),
                         kernels=kernels, sort_bytes=sort_bytes, ray_steps=ray_steps,
-                        pushed=int(lanes[2]), carried=carried, seconds=time.perf_counter() - t0)
+                        pushed=int(lanes[2]), carried=carried, seconds=time.perf_counter() - t0,
+                        result_bytes=result_traffic(not layer, n, int(work["hits_written"].sum())))
 
 
 # -- one row of numbers ------------------------------------------------------------------------------
@@ -238,8 +249,9 @@ class LocalityRow:
     node_dram_bytes_per_ray: float
     triangle_dram_bytes_per_ray: float
     sort_bytes_per_ray: float
-    total_dram_bytes_per_ray: float     # dram + sort: what the mode costs the memory bus
+    total_dram_bytes_per_ray: float     # dram + sort + result: what the mode costs the memory bus
     branching: int = 2                  # children per node of the replayed tree
+    result_bytes_per_ray: float = 0.0   # hits written to the results (steptraffic.result_traffic)
     steps_per_ray: float = 0.0          # kernel calls a ray took part in (wavefront steps and the tail)
     sort_bytes_per_ray_step: float = 0.0  # sort_bytes over the rays of every wavefront step
     pushed_per_ray_step: float = 0.0    # entries pushed and written back, per ray and wavefront step
@@ -293,8 +305,8 @@ def row(kind: str, rep: ReplayResult, treelet_height: int, sampled_from: int | N
         dram_bytes_per_ray=dram(range(mt.SITES)),
         node_dram_bytes_per_ray=dram(mt.CATEGORY["node"]), triangle_dram_bytes_per_ray=dram(mt.CATEGORY["triangle"]),
         sort_bytes_per_ray=rep.sort_bytes / n,
-        total_dram_bytes_per_ray=dram(range(mt.SITES)) + rep.sort_bytes / n,
-        branching=rep.branching, steps_per_ray=float(rep.work["steps"].sum()) / n,
+        total_dram_bytes_per_ray=dram(range(mt.SITES)) + (rep.sort_bytes + rep.result_bytes) / n,
+        branching=rep.branching, result_bytes_per_ray=rep.result_bytes / n, steps_per_ray=float(rep.work["steps"].sum()) / n,
         sort_bytes_per_ray_step=rep.sort_bytes / rep.ray_steps if rep.ray_steps else 0.0,
         pushed_per_ray_step=rep.pushed / rep.ray_steps if rep.ray_steps else 0.0,
         carried_per_ray_step=rep.carried / rep.ray_steps if rep.ray_steps else 0.0,
@@ -349,8 +361,8 @@ def verdict(rows: list[LocalityRow]) -> list[str]:
             f"per_ray's node transactions (SIMD efficiency {s.simd_efficiency:.2f} vs {p.simd_efficiency:.2f}) and read "
             f"{nt:.2f}x its node and triangle bytes from DRAM; all kernel reads {_ratio(s.dram_bytes_per_ray, p.dram_bytes_per_ray):.2f}x, "
             f"with the {s.sort_bytes_per_ray:.0f} B/ray moved between steps "
-            f"{_ratio(s.total_dram_bytes_per_ray, p.dram_bytes_per_ray):.2f}x: sorting "
-            + ("wins on memory traffic" if s.total_dram_bytes_per_ray < p.dram_bytes_per_ray
+            f"and the hits written {_ratio(s.total_dram_bytes_per_ray, p.total_dram_bytes_per_ray):.2f}x: sorting "
+            + ("wins on memory traffic" if s.total_dram_bytes_per_ray < p.total_dram_bytes_per_ray
                else "does not pay for itself in memory traffic")
             + (f" (per ray and step it moves {s.sort_bytes_per_ray_step:.0f} B; break-even "
                f"{s.break_even_bytes_per_ray_step:.0f} B, lower bound {s.lower_bound_bytes_per_ray_step:.0f} B)."
@@ -387,7 +399,7 @@ def preset_verdict(rows: list[LocalityRow]) -> dict:
                 p, s = g["per_ray"], g["layer_sorted"]
                 nt[kind] = _ratio(s.node_dram_bytes_per_ray + s.triangle_dram_bytes_per_ray,
                                   p.node_dram_bytes_per_ray + p.triangle_dram_bytes_per_ray)
-                tot[kind] = _ratio(s.total_dram_bytes_per_ray, p.dram_bytes_per_ray)
+                tot[kind] = _ratio(s.total_dram_bytes_per_ray, p.total_dram_bytes_per_ray)
         if not nt:
             continue
         gain = [k for k, v in nt.items() if v < 0.9]

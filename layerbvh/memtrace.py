@@ -393,13 +393,18 @@ def local_stack_rows(units: int, resident: int, warp: int) -> int:
     return units * resident * warp
 
 
-# Where a start load reads (StartLoads' `by`): the ray's own slot, its lane in this launch, or its
-# lane in the launch before (a state record gathered through the sort's permutation).
-BY_SLOT, BY_LANE, BY_PREVIOUS_LANE = 0, 1, 2
+# Where a start load reads (StartLoads' `by`): the ray's own slot, its lane in this launch, its
+# lane in the launch before (a state record gathered through the sort's permutation), or, in a
+# wavefront step, the node its link names (a compact state record's treelet lookup: an exit
+# link names its treelet and reads nothing).
+BY_SLOT, BY_LANE, BY_PREVIOUS_LANE, BY_LINK_NODE = 0, 1, 2, 3
 
 
 @numba.njit(cache=True, inline="always")
-def _start_index(by, s, lane, prev_pos):
+def _start_index(by, s, lane, prev_pos, ist, bounded):
+    if by == BY_LINK_NODE:
+        link = ist[s, I_LINK]
+        return link & _PAYLOAD if bounded and (link & _EXIT) == 0 else NO_READ
     return s if by == BY_SLOT else (lane if by == BY_LANE else prev_pos[s])
 
 
@@ -474,7 +479,7 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
                         req[j, k] = NO_READ
                     if fresh:
                         for k in range(n_start):  # the ray (and its state) at the kernel's start
-                            req[j, S_START + k] = _start_index(start_by_pos[k], s, lo + j, prev_pos)
+                            req[j, S_START + k] = _start_index(start_by_pos[k], s, lo + j, prev_pos, ist, bounded)
                             used |= 1 << (S_START + k)
                     used |= iterate(s, ls, bounded, use_global, cap, any_hit, cap_g, nodes_f, nodes_u, tris_f, tris_u,
                                     tris_d, treelet_first, node_treelet, fst, ist, loc_link, loc_t, g_link, g_t, req[j],

@@ -22,11 +22,13 @@ class EntryStack(NamedTuple):
 # a ray that hit nothing or is not inside an instance.
 MISS = 0xFFFFFFFF
 
-# What a ray carries between wavefront steps (the layer modes): one 32-byte record per ray
-# (StateRecords), 4-byte words (issue 40: was 8 arrays, 32 bytes, with u and v, permuted every step):
+# What a ray carries between wavefront steps (the layer modes): one record per ray (StateRecords),
+# 4-byte words, in one of two formats (issue 40: was 8 arrays, 32 bytes, with u and v, permuted
+# every step). The full record, 8 words:
 #   t        float32  closest hit distance so far (culls entries; bounds the slab tests)
 #   prim     uint32   its primitive (of two hits at the same t the lower id wins)
-#   link     uint32   where the ray goes on: a node, leaf or exit link, or POP
+#   link     uint32   where the ray goes on: a node or exit link (never a leaf or POP: a step
+#                     tests a leaf it pops and ends only at another treelet's node or exit)
 #   sp       uint32   the depth of its entry stack in global memory, the entries it still held at
 #                     the end of the step that wrote the record included (written there by that
 #                     step's kernel as the ray's walk ended)
@@ -38,10 +40,22 @@ MISS = 0xFFFFFFFF
 # by the sort's permutation with one aligned load (six 4-byte arrays gathered in permuted order
 # would cost a sector each). u and v are not carried: a step that improves a ray's hit writes t,
 # u, v and prim to the results by slot. Statistics runs carry the work counters beside it.
+# The compact record, 4 words, wherever it can hold the state (no instances, entry stacks under
+# 2^SP_BITS rows, batches under 2^(32 - SP_BITS) rays; StateRecords.words):
+#   t        float32  as above
+#   prim     uint32   as above
+#   link     uint32   as above
+#   slot|sp  uint32   slot << SP_BITS | sp
+# total: 16 bytes, half the full record's writes per ray that goes on. The treelet is not stored:
+# an exit link names its treelet, and the next step looks a node link's up (layout.node_treelet;
+# nodes of one treelet are contiguous, so a sorted warp's lookups share a sector or two).
 LEAN_STATE = ("t", "prim", "link", "sp", "slot", "treelet")
 LEAN_STATE_BYTES = 4 * len(LEAN_STATE)   # what the next step needs: 24 bytes ...
 STATE_RECORD_WORDS = 8
-STATE_RECORD_BYTES = 4 * STATE_RECORD_WORDS  # ... stored in a 32-byte record (written whole)
+STATE_RECORD_BYTES = 4 * STATE_RECORD_WORDS  # ... stored in a 32-byte record (written whole) ...
+COMPACT_RECORD_WORDS = 4
+COMPACT_RECORD_BYTES = 4 * COMPACT_RECORD_WORDS  # ... or, packed and less the treelet, in 16
+SP_BITS = 8
 # Work counted per ray when statistics are asked for: RayState field -> Results/Hits name.
 # The last two are the stores a wavefront step makes besides its state record and sort key: the
 # entries a ray still holds at a step's end, written above its global stack (walk's spill), and
@@ -97,31 +111,46 @@ class RayRecords:
 
 
 class StateRecords:
-    """The rays' states between wavefront steps as one 32-byte record per lane of the step that
-    wrote them (the layout above LEAN_STATE): a step writes its lanes' records in lane order (one
-    packet store per lane, coalesced), and the next step reads each of its rays' with one gather by
-    the sort's permutation, so nothing permutes the states in between (issue 40)."""
+    """The rays' states between wavefront steps as one record per lane of the step that wrote them
+    (the formats above LEAN_STATE): a step writes its lanes' records in lane order (one packet
+    store per lane, coalesced), and the next step reads each of its rays' with one gather by the
+    sort's permutation, so nothing permutes the states in between (issue 40)."""
 
     FIELDS = LEAN_STATE + ("inst", "hit_inst")
 
     @staticmethod
-    def write(m, s: "RayState", active):
+    def words(instanced: bool, rows: int, n: int) -> int:
+        """The words of a record for a trace of `n` rays with `rows` entry-stack rows per ray: the
+        compact format wherever its packed slot and depth fit, else the full one."""
+        fits = not instanced and rows < (1 << SP_BITS) and n <= (1 << (32 - SP_BITS))
+        return COMPACT_RECORD_WORDS if fits else STATE_RECORD_WORDS
+
+    @staticmethod
+    def write(m, s: "RayState", active, words: int):
         """The records of the lanes of `s` where `active` (the rays that go on), in lane order (a
-        flat UInt32 array, 8 words a lane; the others' rows are left unwritten)."""
+        flat UInt32 array, `words` words a lane; the others' rows are left unwritten)."""
         n = dr.width(s.link)
-        spare = dr.full(m.UInt32, MISS, n)
-        words = [dr.reinterpret_array(m.UInt32, s.t)] + [getattr(s, f) for f in LEAN_STATE[1:]] \
-            + [s.inst if s.inst is not None else spare, s.hit_inst if s.hit_inst is not None else spare]
-        rec = dr.empty(m.UInt32, n * STATE_RECORD_WORDS)
-        dr.scatter(rec, m.ArrayXu(words), dr.arange(m.UInt32, n), active)
+        t = dr.reinterpret_array(m.UInt32, s.t)
+        if words == COMPACT_RECORD_WORDS:
+            w = [t, s.prim, s.link, (s.slot << SP_BITS) | s.sp]
+        else:
+            spare = dr.full(m.UInt32, MISS, n)
+            w = [t] + [getattr(s, f) for f in LEAN_STATE[1:]] \
+                + [s.inst if s.inst is not None else spare, s.hit_inst if s.hit_inst is not None else spare]
+        rec = dr.empty(m.UInt32, n * words)
+        dr.scatter(rec, m.ArrayXu(w), dr.arange(m.UInt32, n), active)
         return rec
 
     @staticmethod
-    def read(m, rec, idx, instanced: bool) -> "RayState":
-        """The states of the records `idx` (one gather of 8 words a lane; lazy: it runs inside the
-        kernel that uses it)."""
-        w = dr.gather(m.ArrayXu, rec, idx, shape=(STATE_RECORD_WORDS, dr.width(idx)))
-        s = RayState(t=dr.reinterpret_array(m.Float, w[0]), prim=w[1], link=w[2], sp=w[3], slot=w[4], treelet=w[5])
+    def read(m, rec, idx, instanced: bool, words: int) -> "RayState":
+        """The states of the records `idx` (one gather of `words` words a lane; lazy: it runs
+        inside the kernel that uses it). A compact record's treelet is None: walk finds it."""
+        w = dr.gather(m.ArrayXu, rec, idx, shape=(words, dr.width(idx)))
+        t = dr.reinterpret_array(m.Float, w[0])
+        if words == COMPACT_RECORD_WORDS:
+            return RayState(t=t, prim=w[1], link=w[2], sp=w[3] & ((1 << SP_BITS) - 1), slot=w[3] >> SP_BITS,
+                            treelet=None)
+        s = RayState(t=t, prim=w[1], link=w[2], sp=w[3], slot=w[4], treelet=w[5])
         if instanced:
             s.inst, s.hit_inst = w[6], w[7]
         return s
@@ -167,7 +196,7 @@ class RayState:
     n_iter: object = None
     n_steps: object = None  # kernel calls (wavefront steps, or the per-ray kernel) the ray took part in
     n_stack: object = None    # global entry-stack entries read (each: link and distance)
-    n_treelet: object = None  # node-treelet lookups (a popped global entry's treelet)
+    n_treelet: object = None  # node-treelet lookups (a popped global entry's, a compact record's link's)
     n_root: object = None     # exit roots looked up (treelet_first)
     n_spill: object = None    # entries written above the global entry stack at steps' ends
     n_hitw: object = None     # closer hits written to the results by slot as found

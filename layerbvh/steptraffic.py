@@ -1,31 +1,41 @@
 """What a wavefront step moves besides its traversal kernel's loads (the layer modes' "between steps" bytes), and the limits a step design has to meet to save memory traffic."""
 from __future__ import annotations
 
-from .state import LEAN_STATE_BYTES, STATE_RECORD_BYTES
+from .state import LEAN_STATE_BYTES
 from .wavefront import ENTRY_BYTES
 
-HIT_BYTES = 16              # t, u, v, prim: what a step writes by slot for each closer hit it finds
+HIT_BYTES = 16              # t, u, v, prim: one hit written to the results
 
 
-def sort_traffic(n: int, pushed: int, improved: int, done: int, sort: bool, last: bool) -> int:
+def result_traffic(per_ray: bool, rays: int, hits_written: int) -> int:
+    """Bytes a trace writes to its results (t, u, v, prim by slot), in every mode, so that modes
+    compare fairly: per_ray's kernel writes each ray's once, as it finishes, hit or miss; the
+    layer modes write each closer hit as a step (or the tail) finds it (`hits_written`, traced by
+    the replay and counted by the kernel), so a ray that improves its hit twice writes twice and
+    a ray that misses writes nothing. (The results' first fill is the same in every mode.)"""
+    return HIT_BYTES * (rays if per_ray else hits_written)
+
+
+def sort_traffic(n: int, pushed: int, done: int, sort: bool, last: bool, record_bytes: int) -> int:
     """Bytes a wavefront step of `n` rays moves besides its traversal kernel's loads (issue 40's
     design, wavefront.trace): each array element read or written once, all of it counted as DRAM
     traffic (streams far larger than any cache). `pushed` (the entries the rays that go on still
-    hold at the step's end), `improved` (closer hits the step found: each is written at once) and
-    `done` (rays that finished) are traced by the replay as the kernel runs.
-    - the step kernel's writes: every lane's sort key, in lane order; the state record
-      (STATE_RECORD_BYTES, written whole) of each ray that goes on, in lane order; the entries each
-      such ray still holds, above its global stack, as its walk ends (walk's spill: an entry pushed
-      and taken within the step never leaves the kernel's local stack); each closer hit by slot
-      (the finished-ray count is an atomic on one word: no bytes per ray);
+    hold at the step's end) and `done` (rays that finished) are traced by the replay as the kernel
+    runs.
+    - the step kernel's writes: every lane's sort key, in lane order; the state record of each ray
+      that goes on, in lane order (`record_bytes`: its format's, state.StateRecords, written whole);
+      the entries each such ray still holds, above its global stack, as its walk ends (walk's
+      spill: an entry pushed and taken within the step never leaves the kernel's local stack);
+      the finished-ray count is an atomic on one word (no bytes per ray);
     - then, unless every ray finished, the sort (block_mkperm reads the keys, writes the
       permutation) or the compaction (keys read, the rays that go on written);
     - the permutation, read by the next step as it gathers each ray's record through it. The
       record gather itself is one of the next kernel's loads (cache-simulated with them).
-    The results a ray writes when it finishes are not counted: per_ray writes the same. Nor are
-    the write-back's reads of the lane's local stack (memory that lane wrote in the same kernel)."""
+    The hits a step writes to the results are counted apart, as every mode's are (result_traffic).
+    The write-back's reads of the lane's local stack (memory that lane wrote in the same kernel)
+    are not counted."""
     left = n - done
-    kernel = n * 4 + left * STATE_RECORD_BYTES + pushed * ENTRY_BYTES + improved * HIT_BYTES
+    kernel = n * 4 + left * record_bytes + pushed * ENTRY_BYTES
     if last:
         return kernel
     order = n * 4 + n * 4 if sort else n * 4 + left * 4  # block_mkperm; compress
@@ -34,8 +44,9 @@ def sort_traffic(n: int, pushed: int, improved: int, done: int, sort: bool, last
 
 def limits(rows: list) -> None:
     """Fill in each layer row's break-even and lower bound (per ray and wavefront step):
-    - break-even: (per_ray's DRAM bytes per ray - the layer kernels' own) / the ray's wavefront
-      steps: what the steps may move between them and still cost the bus less than per_ray;
+    - break-even: (per_ray's DRAM bytes per ray, its results' writes included, - the layer
+      kernels' own and their results' writes) / the ray's wavefront steps: what the steps may move
+      between them and still cost the bus less than per_ray;
     - lower bound, for any exact wavefront design that keeps every exit (state.LEAN_STATE): each
       ray that goes on must write the next step's state once per step (t, prim, link, sp and the
       sort key: 20 bytes, LEAN_STATE_BYTES less slot, which a design could keep in place; a ray that
@@ -52,6 +63,7 @@ def limits(rows: list) -> None:
                 continue
             wave_steps = r.sort_bytes_per_ray / r.sort_bytes_per_ray_step if r.sort_bytes_per_ray_step else 0.0
             if wave_steps:
-                r.break_even_bytes_per_ray_step = (p.dram_bytes_per_ray - r.dram_bytes_per_ray) / wave_steps
+                r.break_even_bytes_per_ray_step = (p.total_dram_bytes_per_ray - r.dram_bytes_per_ray
+                                                   - r.result_bytes_per_ray) / wave_steps
                 r.lower_bound_bytes_per_ray_step = ((LEAN_STATE_BYTES - 4) * r.carried_per_ray_step
                                                     + ENTRY_BYTES * r.pushed_per_ray_step)

@@ -23,7 +23,8 @@ _FLT_MAX = 3.4028234663852886e38
 def walk(m, lay: DeviceLayout, rays, s: RayState, *, stack: EntryStack | None, cap: int, bounded: bool,
          any_hit: bool, count_work: bool = True, active=None, results=None, spill: EntryStack | None = None):
     """Advance every ray of `s`, nearest child first, until it finishes or (when `bounded`)
-    is about to continue in another treelet than `s.treelet`. `rays` (state.SlotRays,
+    is about to continue in another treelet than the step's (`s.treelet`; None: a compact state
+    record's, found from its link). `rays` (state.SlotRays,
     state.RayRecords or state.DirectRays) gives each slot's origin and direction.
 
     One loop iteration does, in this order, whatever of these a ray needs: test one triangle of
@@ -110,14 +111,18 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
     n_spill, n_hitw = (m.UInt32(c) if count_work else zero for c in (s.n_spill, s.n_hitw))
     tri_cur, tri_end = m.UInt32(0), m.UInt32(0)
     done = m.Bool(False)
-    next_treelet = m.UInt32(s.treelet)
+    step_treelet = s.treelet
+    if dr.hint(step_treelet is None, mode="scalar"):  # a compact state record: no treelet stored
+        step_treelet, n_treelet = _record_treelet(m, lay, s.link, n_treelet, count_work, bounded)
+    next_treelet = m.UInt32(step_treelet)
     base = s.slot * dr.opaque(m.UInt32, stack.rows) if stack is not None else m.UInt32(0)  # (opaque: one kernel per tree depth)
     active = dr.full(m.Bool, True, dr.width(s.link)) if active is None else m.Bool(active)
 
     while active:
         if count_work:
             n_iter += 1
-        walking = m.Bool(active)  # (the rays whose walk may end in this iteration)
+        if dr.hint(spill is not None, mode="scalar"):  # (plain Python: per_ray's kernel is left as it was)
+            walking = m.Bool(active)  # the rays whose walk may end in this iteration
 
         # -- a triangle of the current leaf --
         if tri_cur < tri_end:
@@ -154,7 +159,8 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
         if instanced:
             link, in_inst, ray = _leave_instance(m, want, link, in_inst, ray, world_o, world_d)
         if bounded:
-            leave, tre, n_treelet = _entry_treelet(m, lay, s, want, active, link, from_global, n_treelet, count_work)
+            leave, tre, n_treelet = _entry_treelet(m, lay, step_treelet, want, active, link, from_global, n_treelet,
+                                                   count_work)
             next_treelet = dr.select(leave, tre, next_treelet)
             active &= ~leave
 
@@ -224,7 +230,7 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
             if count_work:
                 n_leaf += 1
 
-        if spill is not None:  # -- a bounded step's end: the entries the ray holds, written back --
+        if dr.hint(spill is not None, mode="scalar"):  # -- a step's end: the entries the ray holds, written back --
             n_spill = _spill_held(m, spill, loc_link, loc_t, cap, walking & ~active & ~done, base + sp, nl, n_spill,
                                   count_work)
 
@@ -314,18 +320,31 @@ def _leave_instance(m, want, link, in_inst, ray, world_o, world_d):
     return link, in_inst, ray
 
 
-def _entry_treelet(m, lay: DeviceLayout, s: RayState, want, active, link, from_global, n_treelet, count_work: bool):
-    """A bounded step's popped entry: (whether it lies in another treelet than the step's, that
-    treelet, the lookup count). Entries pushed in this step are of its treelet, exits excepted;
-    global ones may be of any treelet (a node's is looked up, an exit names its own)."""
+def _record_treelet(m, lay: DeviceLayout, link, n_treelet, count_work: bool, bounded: bool):
+    """The treelet a compact state record's ray steps into (state.StateRecords): an exit link
+    names it, a node link's is looked up (counted with the popped entries' lookups). Only a
+    bounded step needs it; the tail's walk gets zeros. Returns (treelet, n_treelet)."""
+    if not bounded:
+        return dr.zeros(m.UInt32, dr.width(link)), n_treelet
+    node = (link & EXIT_BIT) == 0
+    tre = dr.select(node, dr.gather(m.UInt32, lay.node_treelet, link & PAYLOAD_MASK, node), link & PAYLOAD_MASK)
+    if count_work:
+        n_treelet += dr.select(node, m.UInt32(1), m.UInt32(0))
+    return tre, n_treelet
+
+
+def _entry_treelet(m, lay: DeviceLayout, treelet, want, active, link, from_global, n_treelet, count_work: bool):
+    """A bounded step's popped entry: (whether it lies in another treelet than the step's,
+    `treelet`, that treelet, the lookup count). Entries pushed in this step are of its treelet,
+    exits excepted; global ones may be of any treelet (a node's is looked up, an exit names its own)."""
     other = want & active & (link != POP) & ((link & LEAF_BIT) == 0)
     is_exit = other & ((link & EXIT_BIT) != 0)
-    tre = dr.select(is_exit, link & PAYLOAD_MASK, s.treelet)
+    tre = dr.select(is_exit, link & PAYLOAD_MASK, treelet)
     global_node = other & from_global & ~is_exit
     tre = dr.select(global_node, dr.gather(m.UInt32, lay.node_treelet, link & PAYLOAD_MASK, global_node), tre)
     if count_work:
         n_treelet += dr.select(global_node, m.UInt32(1), m.UInt32(0))
-    return other & (tre != s.treelet), tre, n_treelet
+    return other & (tre != treelet), tre, n_treelet
 
 
 @dr.syntax

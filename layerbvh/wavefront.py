@@ -7,8 +7,7 @@ import drjit as dr
 
 from .inputs import RayBatch
 from .layout import DeviceLayout, treelet_levels
-from .state import (STATE_RECORD_BYTES, DirectRays, EntryStack, RayRecords, RayState, Results, SlotRays,
-                    StateRecords)
+from .state import DirectRays, EntryStack, RayRecords, RayState, Results, SlotRays, StateRecords
 from .stats import TraceStats
 from .walk import walk
 
@@ -106,12 +105,13 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
     finished_key = dr.opaque(m.UInt32, finished)
     buckets = 1 << max(1, (finished).bit_length())
     work = tuple(f for f in s.fields() if f not in StateRecords.FIELDS)  # statistics: the work counters
-    # The states as records (state.StateRecords), read by the first step in order.
-    rec = StateRecords.write(m, s, True)
+    # The states as records (state.StateRecords, compact where they fit), read by the first step in order.
+    words = StateRecords.words(instanced, cap_global, n)
+    rec = StateRecords.write(m, s, True, words)
     dr.eval(rec)
     peak = 0
     n_active = n0 = dr.width(s.t)
-    s = StateRecords.read(m, rec, dr.arange(m.UInt32, n_active), instanced)
+    s = StateRecords.read(m, rec, dr.arange(m.UInt32, n_active), instanced, words)
     for f in work:
         setattr(s, f, dr.zeros(m.UInt32, n_active))
     while n_active > 0:
@@ -136,7 +136,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
                                count_work=count_work, results=res, spill=spill)
         keys = out.treelet = dr.select(done, finished_key, out.treelet)
         n_step = dr.width(keys)
-        rec = StateRecords.write(m, out, ~done)
+        rec = StateRecords.write(m, out, ~done, words)
         counters = [getattr(out, f) for f in work]
         # The rays that finished, counted by the kernel itself (an atomic on one word, not another
         # pass over the keys).
@@ -162,12 +162,12 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
             perm = dr.gather(m.UInt32, perm, dr.arange(m.UInt32, n_active))  # (lazy: read by the next step)
         else:
             perm = dr.compress(keys != finished_key)  # (not ~done: an unevaluated kernel output re-runs it)
-        s = StateRecords.read(m, rec, perm, instanced)
+        s = StateRecords.read(m, rec, perm, instanced, words)
         for f, c in zip(work, counters):
             setattr(s, f, dr.gather(m.UInt32, c, perm))
         te = _sync()
         # the records read and those written (both alive during a step), keys, permutation
-        peak = max(peak, n_step * (2 * STATE_RECORD_BYTES + 8 + 8 * len(work)))
+        peak = max(peak, n_step * (2 * 4 * words + 8 + 8 * len(work)))
         stats.steps += 1
         stats.time_traverse_s += tb - ta
         stats.time_sort_s += te - tb

@@ -104,7 +104,7 @@ def _time_kind(bvh, o, d, tmax, any_hit: bool, runs: int, want=None, rows: dict 
     if rows is not None:
         pr, so = rows["per_ray"], rows["layer_sorted"]
         r.update(model_dram_per_ray_over_sorted=pr["dram_bytes_per_ray"] / so["dram_bytes_per_ray"],
-                 model_total_per_ray_over_sorted=pr["dram_bytes_per_ray"] / so["total_dram_bytes_per_ray"],
+                 model_total_per_ray_over_sorted=pr["total_dram_bytes_per_ray"] / so["total_dram_bytes_per_ray"],
                  hits_differing_from_replay=bad)
     return r
 

@@ -69,8 +69,8 @@ MUTATIONS = (
     Mutation("between_steps_forget_held_entries", "the model's between-step bytes leave out the entries each ray "
              "writes above its global stack",
              "layerbvh/steptraffic.py",
-             "left * STATE_RECORD_BYTES + pushed * ENTRY_BYTES + improved",
-             "left * STATE_RECORD_BYTES + improved",
+             "left * record_bytes + pushed * ENTRY_BYTES + improved",
+             "left * record_bytes + improved",
              ("tests/tools/test_locality.py::test_between_step_bytes_are_what_the_kernel_stored[layer_sorted]",)),
     Mutation("tie_rule_flipped", "ties in t go to the larger primitive id",
              "layerbvh/walk.py",
@@ -209,8 +209,8 @@ MUTATIONS = (
     Mutation("state_records_read_in_lane_order", "the next step reads the state records in the order the step "
              "before wrote them, not through the sort's permutation (issue 40: nothing else permutes the states)",
              "layerbvh/wavefront.py",
-             "        s = StateRecords.read(m, rec, perm, instanced)\n",
-             "        s = StateRecords.read(m, rec, dr.arange(m.UInt32, dr.width(perm)), instanced)\n",
+             "        s = StateRecords.read(m, rec, perm, instanced, words)\n",
+             "        s = StateRecords.read(m, rec, dr.arange(m.UInt32, dr.width(perm)), instanced, words)\n",
              ("tests/engine/test_engine_hits.py::test_modes_agree_exactly[incoherent-bunny]",)),
     Mutation("kernel_reads_one_more_array", "a wavefront step looks up the treelet of every node entry it pops, "
              "its own pushes included (same hits, one more load per pop: the load-count check must see it)",

@@ -76,28 +76,32 @@ def test_trace_follows_the_kernel_on_wide_trees(bunny, branching):
 
 @pytest.mark.parametrize("mode", ["layer_sorted", "layer_unsorted"])
 def test_between_step_bytes_are_what_the_kernel_stored(bunny, mode):
-    """The replay's between-step bytes (steptraffic.sort_traffic) from what the kernel itself
-    reports: the rays of each step (stats.active_per_step), and per ray the held entries it wrote
-    above its global stack and the closer hits it wrote by slot (its store counters). Per step:
-    every lane's 4-byte key, a 32-byte state record per ray that goes on; between steps the sort
-    (keys read, permutation written; compaction: keys read, survivors written) and the
-    permutation read by the next step; 8 bytes per entry, 16 per hit. No tail: every ray
-    finishes in the steps, so every store counted is a step's."""
+    """The replay's between-step bytes (steptraffic.sort_traffic) and results' bytes from what the
+    kernel itself reports: the rays of each step (stats.active_per_step), and per ray the held
+    entries it wrote above its global stack and the closer hits it wrote by slot (its store
+    counters). Per step: every lane's 4-byte key, a state record per ray that goes on (the bunny's
+    tree takes the compact 16-byte one: state.StateRecords); between steps the sort (keys read,
+    permutation written; compaction: keys read, survivors written) and the permutation read by
+    the next step; 8 bytes per entry. Results: 16 bytes per hit written (per_ray: per ray). No
+    tail: every ray finishes in the steps, so every entry counted is a step's."""
     v, f = bunny
     o, d, tmax = _rays(v, "incoherent")
     bvh = layerbvh.build(v, f, branching=4, treelet_height=3, batch_rays=len(o), tail_rays=0, tail_fraction=0)
     h = bvh.trace(o, d, tmax, mode=mode, stats=True)
     n = h.stats.active_per_step
     assert len(n) > 3 and h.stats.tail_rays == 0
-    want = 8 * int(np.sum(h.work["entries_written"])) + 16 * int(np.sum(h.work["hits_written"]))
+    want = 8 * int(np.sum(h.work["entries_written"]))
     for s, n_s in enumerate(n):
         left = n[s + 1] if s + 1 < len(n) else 0
-        want += 4 * n_s + 32 * left
+        want += 4 * n_s + 16 * left
         if left:
             want += (8 * n_s if mode == "layer_sorted" else 4 * n_s + 4 * left) + 4 * left
     rep = L.replay(bvh.layout, o, d, tmax, mode, False, 32, preset("gtx965m"), bvh.tail_rays, bvh.tail_fraction)
     assert int(np.sum(h.work["entries_written"])) > len(o) // 4
     assert rep.sort_bytes == want
+    assert rep.result_bytes == 16 * int(np.sum(h.work["hits_written"])) > 0
+    per = L.replay(bvh.layout, o, d, tmax, "per_ray", False, 32, preset("gtx965m"), bvh.tail_rays, bvh.tail_fraction)
+    assert per.sort_bytes == 0 and per.result_bytes == 16 * len(o)
 
 
 def _two_triangles():
@@ -242,7 +246,7 @@ def test_height_table_sets_sorted_against_per_ray_per_height():
     for h, sorted_total, steps in ((8, 120.0, 5.0), (12, 82.0, 3.0)):
         for k in (2, 4):  # the binary rows must not leak into the default tree's table
             rows += [dataclasses.replace(base, kind="shadow", mode="per_ray", preset="gtx965m", warp=32, treelet_height=h,
-                                         branching=k, dram_bytes_per_ray=100.0),
+                                         branching=k, dram_bytes_per_ray=100.0, total_dram_bytes_per_ray=100.0),
                      dataclasses.replace(base, kind="shadow", mode="layer_sorted", preset="gtx965m", warp=32,
                                          treelet_height=h, branching=k, total_dram_bytes_per_ray=sorted_total * k / 4,
                                          steps_per_ray=steps)]

@@ -174,8 +174,8 @@ def headline(doc: dict) -> dict:
             "per_ray_transactions": p and p["transactions_per_ray"], "sorted_transactions": s and s["transactions_per_ray"],
             "per_ray_dram_bytes": p and p["dram_bytes_per_ray"], "sorted_dram_bytes": s and s["dram_bytes_per_ray"],
             "sorted_sort_bytes": s and s["sort_bytes_per_ray"],
-            "sorted_total_vs_per_ray": (s["total_dram_bytes_per_ray"] / p["dram_bytes_per_ray"])
-            if p and s and p["dram_bytes_per_ray"] else None,
+            "sorted_total_vs_per_ray": (s["total_dram_bytes_per_ray"] / p["total_dram_bytes_per_ray"])
+            if p and s and p["total_dram_bytes_per_ray"] else None,
             "trace_exact": all(c["exact"] for c in doc["checks"]) if doc["checks"] else None}
 
 
@@ -189,13 +189,15 @@ MEANING = (
     "order. A warp's load is one transaction per distinct segment its lanes touch (coalescing); each "
     "transaction goes through set-associative LRU caches (one L1 per SM or core, a shared L2, and the "
     "CPU's L3) with resident warps interleaved round-robin. DRAM bytes are what the last level misses; "
-    "'between steps' is what a wavefront step moves besides its kernel's loads (the state records of the "
-    "rays that go on, keys and entry counts, the entries rays pushed and their move above each ray's "
-    "stack, hits it improved, the sort, the permutation; the next step's gather of each state record is "
-    "one of its kernel's loads), counted as DRAM traffic; per ray and step, the break-even is what a step may move and "
-    "still cost the bus less than per_ray (the layer kernels' own excess subtracted; negative: the kernels "
-    "alone read more), and the lower bound what any exact multi-exit design must move (its next state and "
-    "the entries pushed). The model leaves out instruction costs, latency "
+    "'between steps' is what a wavefront step moves besides its kernel's loads (every lane's sort key, "
+    "the state record of each ray that goes on, the entries it still holds written above its global "
+    "stack, the sort, the permutation; the next step's gather of each state record is one of its "
+    "kernel's loads), counted as DRAM traffic; 'hits written' what every mode writes to its results "
+    "(per_ray each ray's hit once, the layer modes each closer hit as found), in the total; per ray and "
+    "step, the break-even is what a step may move and still cost the bus less than per_ray (the layer "
+    "kernels' own excess subtracted; negative: the kernels alone read more), and the lower bound what "
+    "any exact multi-exit design must move (the next state of each ray that goes on and the entries it "
+    "holds). The model leaves out instruction costs, latency "
     "hiding, write traffic inside the kernels, prefetching and the real replacement policies; on CUDA, "
     "where rcp is approximate, a few rays may take another path than the LLVM kernel the trace is checked "
     "against.")
@@ -217,8 +219,8 @@ def height_table(rows: list) -> str:
         for h in heights:
             g = {r.mode: r for r in mine if r.kind == kind and r.treelet_height == h}
             p_, s_ = g.get("per_ray"), g.get("layer_sorted")
-            cells.append(f"{s_.total_dram_bytes_per_ray / p_.dram_bytes_per_ray:.2f}×, {s_.steps_per_ray:.2f}"
-                         if p_ and s_ and p_.dram_bytes_per_ray else "–")
+            cells.append(f"{s_.total_dram_bytes_per_ray / p_.total_dram_bytes_per_ray:.2f}×, {s_.steps_per_ray:.2f}"
+                         if p_ and s_ and p_.total_dram_bytes_per_ray else "–")
         out += f"| {kind} | " + " | ".join(cells) + " |\n"
     return out
 
@@ -226,7 +228,8 @@ def height_table(rows: list) -> str:
 def table_compact(rows: list) -> str:
     """Per kind and mode: the figures BENCHMARKS.md shows."""
     cols = ("kind", "mode", "rays", "node tx/ray", "SIMD eff.", "L1 hit", "L2 hit", "node+tri DRAM B/ray",
-            "kernel DRAM B/ray", "between steps B/ray", "total B/ray", "steps/ray", "between steps B/ray/step",
+            "kernel DRAM B/ray", "between steps B/ray", "hits written B/ray", "total B/ray", "steps/ray",
+            "between steps B/ray/step",
             "break-even B/ray/step", "lower bound B/ray/step")
     out = "| " + " | ".join(cols) + " |\n|" + "---|" * len(cols) + "\n"
 
@@ -236,7 +239,8 @@ def table_compact(rows: list) -> str:
         out += (f"| {r.kind} | {r.mode} | {r.rays:,} | {r.node_transactions_per_ray:.1f} | {r.simd_efficiency:.2f} | "
                 f"{r.l1_hit_rate:.2f} | {r.l2_hit_rate:.2f} | "
                 f"{r.node_dram_bytes_per_ray + r.triangle_dram_bytes_per_ray:.0f} | {r.dram_bytes_per_ray:.0f} | "
-                f"{r.sort_bytes_per_ray:.0f} | {r.total_dram_bytes_per_ray:.0f} | {r.steps_per_ray:.1f} | "
+                f"{r.sort_bytes_per_ray:.0f} | {r.result_bytes_per_ray:.0f} | {r.total_dram_bytes_per_ray:.0f} | "
+                f"{r.steps_per_ray:.1f} | "
                 f"{num(r.sort_bytes_per_ray_step if r.mode != 'per_ray' else None)} | "
                 f"{num(r.break_even_bytes_per_ray_step)} | {num(r.lower_bound_bytes_per_ray_step)} |\n")
     return out
@@ -334,7 +338,8 @@ def plot_png(doc: dict) -> bytes:
     parts = (("node records", "node_dram_bytes_per_ray", "tab:blue", None),
              ("triangle records", "triangle_dram_bytes_per_ray", "tab:orange", None),
              ("rays, state, stacks", None, "tab:gray", None),
-             ("between steps", "sort_bytes_per_ray", "white", "///"))
+             ("between steps", "sort_bytes_per_ray", "white", "///"),
+             ("hits written", "result_bytes_per_ray", "tab:green", None))
     for i, p in enumerate(presets):
         for j, k in enumerate(kinds):
             ax = axes[i][j]
@@ -354,7 +359,8 @@ def plot_png(doc: dict) -> bytes:
                     r = next(r for r in sel if r["treelet_height"] == h and r["mode"] == mode and r["warp"] == w)
                     x = g + (b - (len(here) - 1) / 2) * width
                     node, tri = r["node_dram_bytes_per_ray"], r["triangle_dram_bytes_per_ray"]
-                    values = (node, tri, r["dram_bytes_per_ray"] - node - tri, r["sort_bytes_per_ray"])
+                    values = (node, tri, r["dram_bytes_per_ray"] - node - tri, r["sort_bytes_per_ray"],
+                              r.get("result_bytes_per_ray", 0.0))
                     bottom = 0.0
                     for (label, _, colour, hatch), val in zip(parts, values):
                         ax.bar(x, val, width * 0.9, bottom=bottom, color=colour, hatch=hatch, edgecolor="k",
