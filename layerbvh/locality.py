@@ -13,7 +13,7 @@ from .bvh import build
 from .inputs import DEFAULT_BRANCHING, DEFAULT_TREELET_HEIGHT
 from .layout import LayerLayout, node_format, treelet_levels
 from .memmodel import Caches, Preset, preset as named_preset, with_segment
-from .state import MISS, StateRecords
+from .state import COMPACT_RECORD_WORDS, MISS, StateRecords
 from .steptraffic import limits, result_traffic, sort_traffic
 from .tracecheck import TraceCheck, check_trace, same_as
 from .walk import SORT_NETWORKS
@@ -103,16 +103,15 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
              "local_link": local_words * 4, "local_t": local_words * 4}
     # The state record's format, as wavefront.trace picks it (the replay flattens instances).
     record_bytes = 4 * StateRecords.words(False, cap_g, n_all)
-    compact = record_bytes < 4 * StateRecords.words(True, cap_g, n_all)
+    compact = record_bytes == 4 * COMPACT_RECORD_WORDS
     if layer:
         sizes["ray_records"] = n_all * RAY_RECORD_BYTES
         # A step reads its ray's record by slot and its state record where the step before wrote it
         # (state.StateRecords: in that step's lane order), through the sort's permutation; from a
         # compact record, the treelet of a node link (walk._record_treelet).
         sizes["state_records"] = n_all * record_bytes
-        start = [("ray_records", RAY_RECORD_BYTES, mt.BY_SLOT), ("state_records", record_bytes, mt.BY_PREVIOUS_LANE)]
-        if compact:
-            start.append(("node_treelet", 4, mt.BY_LINK_NODE))
+        start = [("ray_records", RAY_RECORD_BYTES, mt.BY_SLOT), ("state_records", record_bytes, mt.BY_PREVIOUS_LANE)] \
+            + ([("node_treelet", 4, mt.BY_LINK_NODE)] if compact else [])
     else:
         sizes.update({f"ray_{k}": n_all * 4 for k in range(PER_RAY_LOADS)})
         start = [(f"ray_{k}", 4, mt.BY_SLOT) for k in range(PER_RAY_LOADS)]
@@ -203,9 +202,8 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     per_kind = {kind: [loads[:, k] for k in sites] for kind, sites in kinds.items() if sites}
     # (a kind's sites are loaded together, so each counts its loads once; replay() checks they agree)
     assert all((c == cs[0]).all() for cs in per_kind.values() for c in cs), "a load kind's sites disagree"
-    per_ray_loads = {kind: cs[0] for kind, cs in per_kind.items()}
-    if layer and compact:  # (the kernel counts a step's treelet lookup with the popped entries')
-        per_ray_loads["node_treelet"] = per_ray_loads["node_treelet"] + loads[:, mt.S_START + 2]
+    per_ray_loads = {kind: cs[0] for kind, cs in per_kind.items()}  # (+ a step's lookup, as the kernel counts:)
+    per_ray_loads["node_treelet"] = per_ray_loads["node_treelet"] + (loads[:, mt.S_START + 2] if layer and compact else 0)
     return ReplayResult(mode=mode, warp=warp, preset=preset, rays=n, prim=prim, t=t, work=work,
                         loads={kind: np.where(valid, c, 0) for kind, c in per_ray_loads.items()},
                         branching=lay.branching, tally=tally,
@@ -411,7 +409,7 @@ def preset_verdict(rows: list[LocalityRow]) -> dict:
             f"{pre} (W={warp}, H={h}, K={k}): sorting "
             + (f"cuts the node and triangle bytes read from DRAM on {', '.join(f'{k} ({nt[k]:.2f}x)' for k in gain)}"
                if gain else f"does not cut the node and triangle bytes read from DRAM ({span(nt)} of per_ray's)")
-            + f"; counting the ray state, entry stacks and the traffic between steps, the sorted path moves "
+            + f"; counting the ray state, entry stacks, the traffic between steps and the hits written, the sorted path moves "
               f"{span(tot)} per_ray's DRAM bytes, so "
             + (f"it wins on memory traffic for {', '.join(wins)}." if wins else
                "it does not pay for itself in memory traffic on any kind of rays."))
