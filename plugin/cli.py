@@ -25,7 +25,7 @@ from layerbvh_mitsuba.ab.compare import (
 )
 from layerbvh_mitsuba.ab.render import (UserError, load_integrator, load_scene, render_passes, scene_spp, use_variant,
     write_exr)
-from layerbvh_mitsuba.ab.scene_integrator import path_settings
+from layerbvh_mitsuba.ab.scene_integrator import SUPPORTED, path_settings
 from layerbvh_mitsuba.ab.report import REPORT_MARKER, heatmap_png, write_comparison
 from layerbvh_mitsuba.runtime.scene_geometry import UnsupportedShapeError
 from layerbvh_mitsuba.runtime.settings import CHOICES, Traversal, check_traversal_settings
@@ -33,9 +33,8 @@ from layerbvh_mitsuba.tools import converge
 from layerbvh_mitsuba.tools.bench import locality
 from layerbvh_mitsuba.tools.sweep import grid as sweep
 
-AS_PATH_HELP = ("the scene's integrator is none of path, direct, volpath, volpathmis or an aov/moment wrapper around "
-                "them (prb, ptracer, ...): render both sides with path anyway, with the settings read from it where "
-                "it has them (without this, such a scene is refused)")
+AS_PATH_HELP = (f"the scene's integrator is none of {SUPPORTED} (prb, stokes, ...): render both sides with path "
+                "anyway, with the settings read from it where it has them (without this, such a scene is refused)")
 
 
 # Options that several commands take, declared once (issue 42).

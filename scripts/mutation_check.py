@@ -265,6 +265,27 @@ MUTATIONS = (
              '                cur["between_ms"] += ms\n',
              '                cur["rest_ms"] += ms\n',
              ("tests/tools/test_gpu_check.py::test_a_launch_between_a_step_and_its_sort_is_counted_apart",)),
+    Mutation("ptracer_bsdf_draws_in_written_order", "ptracer draws a BSDF sample's 1D before its 2D, as the call "
+             "reads (stock's GCC-built wheel evaluates the arguments right to left): every light path after its "
+             "first bounce differs",
+             "plugin/runtime/estimators/ptracer.py",
+             "            s2 = sampler.next_2d(active)  # (stock's order: see the class docstring)\n"
+             "            bs, bsdf_val = bsdf.sample(mi.BSDFContext(_IMPORTANCE), si, sampler.next_1d(active), s2, active)\n",
+             "            s1 = sampler.next_1d(active)\n"
+             "            bs, bsdf_val = bsdf.sample(mi.BSDFContext(_IMPORTANCE), si, s1, sampler.next_2d(active), active)\n",
+             ("tests/runtime/test_ptracer.py::test_ptracer_agrees_with_stock[cbox-per_ray]",)),
+    Mutation("ptracer_sensor_never_occluded", "ptracer splats every vertex the sensor faces, blocked or not (its "
+             "sensor connection's occlusion test is skipped)",
+             "plugin/runtime/estimators/ptracer.py",
+             "        active &= ~tr.queries.occluded(sensor_ray, active)\n",
+             "        tr.queries.occluded(sensor_ray, active)\n",
+             ("tests/runtime/test_ptracer.py::test_ptracer_agrees_with_stock[cbox-per_ray]",)),
+    Mutation("adjoint_moments_per_sample", "the verdict's second step takes an adjoint integrator's per-render "
+             "variance for a per-sample one (far too strict: equal estimators fail)",
+             "plugin/ab/verdict.py",
+             "    return v.mean(0), v.var(0, ddof=1), ADJOINT_RENDERS\n",
+             "    return v.mean(0), v.var(0, ddof=1), spp\n",
+             ("tests/runtime/test_ptracer.py::test_ptracer_statistical_step_catches_a_2_percent_albedo_change",)),
     Mutation("volpathmis_forgets_nee_after_scattering", "volpathmis keeps the old p_over_f_nee after a real "
              "collision in a medium (the shared walk's strategy hook does nothing)",
              "plugin/runtime/estimators/volpathmis.py",

@@ -109,9 +109,10 @@ def substituted(value: str | None, defaults: dict) -> str | None:
     return None if value is None else re.sub(r"\$(\w+)", lambda m: str(defaults.get(m.group(1), m.group(0))), value)
 
 
-def _xml_booleans(el, defaults: dict) -> dict:
-    """An <integrator> element's boolean properties, by name, as written ("true"/"false")."""
-    return {c.get("name"): substituted(c.get("value"), defaults) for c in el if c.tag == "boolean"}
+def _xml_values(el, defaults: dict) -> dict:
+    """An <integrator> element's boolean and integer properties, by name, as written ("true",
+    "4"): what a loaded integrator does not state (a boolean's value; ptracer's samples_per_pass)."""
+    return {c.get("name"): substituted(c.get("value"), defaults) for c in el if c.tag in ("boolean", "integer")}
 
 
 def _xml_wrapper(el, defaults: dict) -> tuple[Wrapper | None, dict]:
@@ -132,7 +133,7 @@ def _xml_wrapper(el, defaults: dict) -> tuple[Wrapper | None, dict]:
         return None, {}
     leaf = substituted(inner[0].get("type"), defaults)
     if leaf in ESTIMATORS:
-        return Wrapper(kind, tuple(props), leaf=leaf), _xml_booleans(inner[0], defaults)
+        return Wrapper(kind, tuple(props), leaf=leaf), _xml_values(inner[0], defaults)
     nested, path = _xml_wrapper(inner[0], defaults)
     return (None, {}) if nested is None else (Wrapper(kind, tuple(props), nested, leaf=nested.leaf), path)
 
@@ -175,11 +176,12 @@ def scene_wrapper(scene_path, params: dict | None = None) -> tuple[Wrapper | Non
     its XML (an `aov` wrapper's channel list is in its properties, not in the loaded object;
     <include>d files are followed), and the inner estimator's boolean properties; (None, the
     estimator's boolean properties) for an estimator without a wrapper (volpathmis's
-    use_spectral_mis is not in the loaded object); (None, {}) for anything else."""
+    use_spectral_mis is not in the loaded object); (None, {}) for anything else. (Integer
+    properties come with the booleans: _xml_values.)"""
     defaults = {k: str(v).lower() if isinstance(v, bool) else str(v) for k, v in (params or {}).items()}
     el = _scene_integrator(Path(scene_path), defaults, set())
     if el is not None and substituted(el.get("type"), defaults) in ESTIMATORS:
-        return None, _xml_booleans(el, defaults)
+        return None, _xml_values(el, defaults)
     return (None, {}) if el is None else _xml_wrapper(el, defaults)
 
 
@@ -223,7 +225,7 @@ class PathSettings:
         return self.estimator + (" (--as-path)" if self.as_path else "")
 
 
-SUPPORTED = f"{', '.join(ESTIMATORS)}, and aov or moment around them"
+SUPPORTED = f"{', '.join(ESTIMATORS)}, and aov or moment around the sampling ones"
 
 
 def path_settings(mi, scene, as_path: bool = False, scene_path=None, params: dict | None = None) -> PathSettings:
@@ -249,10 +251,12 @@ def path_settings(mi, scene, as_path: bool = False, scene_path=None, params: dic
     inner = inner_integrator_text(integ)
     keys = ("emitter_samples", "bsdf_samples") if estimator == "direct" else ("max_depth", "rr_depth")
     props = {k: v for k in keys if (v := _int_setting(inner, k)) is not None}
-    if own or name == "volpath":
+    if (own or name == "volpath") and hasattr(integ, "hide_emitters"):
         props["hide_emitters"] = bool(integ.hide_emitters)
-    elif wrapper is not None and "hide_emitters" in inner_xml:
+    elif "hide_emitters" in inner_xml:  # (an adjoint integrator, or inside a wrapper: only the XML has it)
         props["hide_emitters"] = inner_xml["hide_emitters"].lower() == "true"
+    if estimator == "ptracer" and "samples_per_pass" in inner_xml:  # (its passes draw their own samples)
+        props["samples_per_pass"] = int(inner_xml["samples_per_pass"])
     if estimator == "volpathmis" and "use_spectral_mis" in inner_xml:  # (only the XML has it)
         props["use_spectral_mis"] = inner_xml["use_spectral_mis"].lower() == "true"
     note = ""

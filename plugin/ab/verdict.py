@@ -14,6 +14,10 @@ from layerbvh_mitsuba.runtime.stats import RenderStats
 
 # Seeds of the statistical step's two renders: apart, so stock's and ours' samples are independent.
 STOCK_SEED, OURS_SEED = 1000, 5000
+# An adjoint integrator (ptracer) splats its light paths anywhere on the film, so a pixel's samples
+# cannot be read one by one: its moments come from this many independent renders, each a sample of
+# the pixel's mean.
+ADJOINT_RENDERS = 16
 
 
 @dataclass
@@ -93,13 +97,17 @@ def load_modified(mi, scene_path, res, params: dict | None, modify):
     return scene
 
 
-def pixel_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pixel mean and per-sample variance of `integrator`'s estimate over `spp` samples per
-    pixel, from one call of its `sample` on all of them: camera rays through uniform positions
+def pixel_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Per-pixel mean, the variance of one sample, and the samples per pixel: for an adjoint
+    integrator from ADJOINT_RENDERS renders of spp / ADJOINT_RENDERS each (`_render_moments`),
+    else of `integrator`'s estimate over `spp` samples per pixel,
+    from one call of its `sample` on all of them: camera rays through uniform positions
     in each pixel (a box filter) from the scene's first sensor, with an independent sampler
     seeded `seed`. One render instead of repeated ones: the variance comes from the samples, and
     the layer modes' per-render kernel launches are paid once, not once per repeat. Both sides
     go through this same estimator, so it compares the integrators, not two films."""
+    if isinstance(integrator, mi.AdjointIntegrator):
+        return _render_moments(mi, scene, integrator, spp, seed)
     sensor = scene.sensors()[0]
     w, h = (int(x) for x in sensor.film().crop_size())
     n = w * h * spp
@@ -112,7 +120,17 @@ def pixel_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarra
     value = weight * L
     dr.eval(value)
     v = np.stack([np.asarray(value[c], np.float64) for c in range(3)], -1).reshape(h, w, spp, 3)
-    return v.mean(2), v.var(2, ddof=1)
+    return v.mean(2), v.var(2, ddof=1), spp
+
+
+def _render_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Per-pixel mean and variance over ADJOINT_RENDERS independent renders (seeds `seed` x
+    ADJOINT_RENDERS + r) of spp / ADJOINT_RENDERS samples per pixel each; each render's pixel is
+    one sample of its mean."""
+    per = max(1, spp // ADJOINT_RENDERS)
+    v = np.stack([np.array(mi.render(scene, integrator=integrator, spp=per, seed=seed * ADJOINT_RENDERS + r),
+                           np.float64)[..., :3] for r in range(ADJOINT_RENDERS)])
+    return v.mean(0), v.var(0, ddof=1), ADJOINT_RENDERS
 
 
 def independent_seed_test(mi, scene_path, res: tuple[int, int], spp: int, stock: dict, ours: dict,
@@ -127,9 +145,9 @@ def independent_seed_test(mi, scene_path, res: tuple[int, int], spp: int, stock:
     ours_scene = scene if ours_modify is None else load_modified(mi, scene_path, res, params, ours_modify)
     stock = load_integrator(mi, stock)
     ours = load_integrator(mi, ours)
-    ref_mean, ref_var = pixel_moments(mi, scene, stock, spp, STOCK_SEED)
-    mean, var = pixel_moments(mi, ours_scene, ours, spp, OURS_SEED)
-    summary, passing = metrics.pixel_test(ref_mean, ref_var, mean, var, spp, spp, alpha=metrics.Z_ALPHA, student=True)
+    ref_mean, ref_var, n_ref = pixel_moments(mi, scene, stock, spp, STOCK_SEED)
+    mean, var, n = pixel_moments(mi, ours_scene, ours, spp, OURS_SEED)
+    summary, passing = metrics.pixel_test(ref_mean, ref_var, mean, var, n_ref, n, alpha=metrics.Z_ALPHA, student=True)
     return StatisticalStep(resolution=tuple(res), spp=spp, pass_fraction=summary["pass_fraction"],
                            pixels=summary["pixels"], min_p=summary["min_p"], threshold=summary["threshold"],
                            seconds=time.perf_counter() - t0, passing=passing, ours_stats=ours.last_stats)

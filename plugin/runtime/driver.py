@@ -156,7 +156,7 @@ class LayerBVHIntegrator:
     # -- auto: decided before the render -------------------------------------------------------
     PREPASS_SEED = 0x5EED  # the pre-pass's own sampler; the render's sampler is never touched
 
-    def _plan_auto(self, scene, state: SceneState, ray: mi.Ray3f) -> bool:
+    def _plan_auto(self, state: SceneState, width: int, prepass) -> bool:
         """auto: decide every kind of batch this render traces before it starts. All of a
         render's batches of one kind have the pass's width (paths keep their lanes; the
         traversal compacts the live ones), so one decision per kind covers the render. What no
@@ -165,7 +165,7 @@ class LayerBVHIntegrator:
         same kernel `per_ray` runs."""
         tracer = state.tracer
         policy, treelets = tracer.bvh.auto, tracer.bvh.stats.treelets
-        k = min(dr.width(ray.o), self.batch_rays)  # what one traced batch holds
+        k = min(width, self.batch_rays)  # what one traced batch holds
         reason = self.estimator.auto_rule(state.features)
         if reason is not None:
             for any_hit, hint in self.estimator.kinds(state.features):
@@ -176,27 +176,24 @@ class LayerBVHIntegrator:
         def modes():
             return [policy.settle(any_hit, hint, k, treelets) for any_hit, hint in self.estimator.kinds(state.features)]
         if None in modes():
-            self._prepass(scene, state, ray, k)
+            self._prepass(state, k, prepass)
         return all(mode == "per_ray" for mode in modes())
 
-    def _prepass(self, scene, state: SceneState, ray: mi.Ray3f, k: int) -> None:
-        """Time auto's open decisions on rays of this scene, before the render: the pass's first
-        `k` camera rays (one batch, as the render traces it), on which the estimator does what
-        reaches every kind of batch it traces (its `prepass`: a path vertex, say) with a sampler
-        of its own (PREPASS_SEED), so its camera hits, shadow rays and first bounce rays reach
-        the traversal with mode auto, which times each open kind on this batch
-        (AutoPolicy.decide). The render's sampler is not touched: the image is the same
-        with or without a pre-pass. Its wall time less kernel compilation is calibration."""
+    def _prepass(self, state: SceneState, k: int, prepass) -> None:
+        """Time auto's open decisions on rays of this scene, before the render: `prepass(sampler,
+        k, tracing)` runs the estimator's pre-pass on one batch of `k` rays (as the render traces
+        them; a sampling estimator's on the pass's first camera rays), doing what reaches every
+        kind of batch it traces (a path vertex, say) with a sampler of its own (PREPASS_SEED),
+        so each kind reaches the traversal with mode auto, which times it on this batch
+        (AutoPolicy.decide). The render's sampler is not touched: the image is the same with or
+        without a pre-pass. Its wall time less kernel compilation is calibration."""
         tracer = state.tracer
         policy_s = tracer.bvh.auto.calibration_s
         t0 = time.perf_counter()
         with CompileClock() as clock:
-            idx = dr.arange(mi.UInt32, k)
-            take = (lambda x: x if dr.width(x) <= 1 else dr.gather(type(x), x, idx))
-            cam = mi.Ray3f(take(ray.o), take(ray.d), take(ray.maxt), take(ray.time), take(ray.wavelengths))
             sampler = mi.load_dict({"type": "independent"})
             sampler.seed(self.PREPASS_SEED, k)
-            self.estimator.prepass(scene, sampler, cam, Tracing(state.tracer, state.features, megakernel=False))
+            prepass(sampler, k, Tracing(state.tracer, state.features, megakernel=False))
         state.prepass_s += (time.perf_counter() - t0 - clock.seconds
                             - (tracer.bvh.auto.calibration_s - policy_s))
 
@@ -239,10 +236,11 @@ class LayerBVHIntegrator:
     # calling the base render again would nest two of them, which loses Ctrl-C. `sample` runs
     # once per render (JIT variants trace all of a pass's samples at once), so it brackets it.
 
-    def _begin(self, scene, state: SceneState, ray: mi.Ray3f) -> dict:
+    def _begin(self, state: SceneState, width: int, prepass) -> dict:
+        """A render of `width` lanes starts: auto decides first (`prepass`: see _prepass)."""
         start = {"calibration_s": self.calibration_s()}
         if self.traversal.auto:
-            self._auto_per_ray = self._plan_auto(scene, state, ray)
+            self._auto_per_ray = self._plan_auto(state, width, prepass)
         start["t0"] = time.perf_counter()  # the render's own time starts after the pre-pass
         if state.tracer is not None:
             state.tracer.reset_counters()  # (the pre-pass's queries are not the render's)
@@ -276,8 +274,15 @@ class LayerBVHIntegrator:
     # -- one render ---------------------------------------------------------------------------
     @instances_held()
     def sample(self, scene, sampler, ray, medium=None, active=True):
+        """A sampling estimator's render: every lane's camera ray `ray` (Mitsuba's SamplingIntegrator)."""
         state = self.scene_state(scene)
-        start = self._begin(scene, state, ray)
+
+        def prepass(sampler, k, tracing):  # (on the pass's first k camera rays)
+            idx = dr.arange(mi.UInt32, k)
+            take = (lambda x: x if dr.width(x) <= 1 else dr.gather(type(x), x, idx))
+            cam = mi.Ray3f(take(ray.o), take(ray.d), take(ray.maxt), take(ray.time), take(ray.wavelengths))
+            self.estimator.prepass(scene, sampler, cam, tracing)
+        start = self._begin(state, dr.width(ray.o), prepass)
         megakernel = self.megakernel()
         tracing = Tracing(self._queries(scene, state.tracer, megakernel), state.features, megakernel)
         active = mi.Bool(active) & dr.full(mi.Bool, True, dr.width(ray.o))
@@ -285,6 +290,19 @@ class LayerBVHIntegrator:
         self._vertices = tracing.iterations
         self._finish(state, start, megakernel)
         return L, valid, []
+
+    @instances_held()
+    def sample_adjoint(self, scene, sensor, sampler, block, sample_scale):
+        """An adjoint estimator's render pass (Mitsuba's AdjointIntegrator: registry.integrator_class
+        makes this the class's `sample`): every lane of `sampler` splats into `block`."""
+        state = self.scene_state(scene)
+        start = self._begin(state, sampler.wavefront_size(),
+                            lambda sampler, k, tracing: self.estimator.prepass(scene, sensor, sampler, tracing))
+        megakernel = self.megakernel()
+        tracing = Tracing(self._queries(scene, state.tracer, megakernel), state.features, megakernel)
+        self.estimator.sample(scene, sensor, sampler, block, sample_scale, tracing)
+        self._vertices = tracing.iterations
+        self._finish(state, start, megakernel)
 
     def _queries(self, scene, tracer: SceneTracer | None, megakernel: bool) -> RayQueries:
         """Who answers this render's queries: Embree (the control), our traversal inline (the

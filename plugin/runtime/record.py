@@ -11,8 +11,10 @@ from layerbvh_mitsuba.runtime.queries import RayQueries
 
 # Ray kinds, in the order of their codes. "first_bounce_diffuse": the ray leaving the first
 # surface a camera ray hit, sampled from a diffuse lobe (the paper's most incoherent case);
-# later diffuse bounces are "diffuse"; shadow rays test emitter visibility (any hit, finite tmax).
-KINDS = ("camera", "first_bounce_diffuse", "diffuse", "glossy", "specular", "shadow")
+# later diffuse bounces are "diffuse"; shadow rays test emitter visibility (any hit, finite tmax),
+# or in a particle tracer a vertex's visibility from the sensor; "light" rays are a particle
+# tracer's (ptracer): leaving an emitter, then each bounce of a light path.
+KINDS = ("camera", "first_bounce_diffuse", "diffuse", "glossy", "specular", "shadow", "light")
 CODE = {k: i for i, k in enumerate(KINDS)}
 
 
@@ -79,7 +81,8 @@ def load(path) -> tuple[np.ndarray, np.ndarray, dict, dict]:
     try:
         z = np.load(path)
         meta = json.loads(bytes(z["meta"]).decode())
-        rays = {k: (z[f"{k}_o"], z[f"{k}_d"], z[f"{k}_tmax"]) for k in KINDS if len(z[f"{k}_o"])}
+        # (a recording made before a kind existed has no arrays of it)
+        rays = {k: (z[f"{k}_o"], z[f"{k}_d"], z[f"{k}_tmax"]) for k in KINDS if f"{k}_o" in z.files and len(z[f"{k}_o"])}
         return z["vertices"], z["faces"].astype(np.int64), rays, meta
     except (OSError, KeyError, ValueError) as e:
         raise ValueError(f"{path}: not a layerbvh ray recording ({e})") from None

@@ -1,4 +1,4 @@
-"""Our integrators registered with Mitsuba, once per JIT variant: `layerbvh` (path), `layerbvh_direct`, `layerbvh_volpath`, `layerbvh_volpathmis` and `layerbvh_depth`, each the render driver given one estimator."""
+"""Our integrators registered with Mitsuba, once per JIT variant: `layerbvh` (path), `layerbvh_direct`, `layerbvh_volpath`, `layerbvh_volpathmis`, `layerbvh_depth` and `layerbvh_ptracer`, each the render driver given one estimator."""
 from __future__ import annotations
 
 import mitsuba as mi
@@ -7,6 +7,7 @@ from layerbvh_mitsuba.runtime.driver import LayerBVHIntegrator
 from layerbvh_mitsuba.runtime.estimators.depth import DepthEstimator
 from layerbvh_mitsuba.runtime.estimators.direct import DirectEstimator
 from layerbvh_mitsuba.runtime.estimators.path import PathEstimator
+from layerbvh_mitsuba.runtime.estimators.ptracer import ParticleTracerEstimator
 from layerbvh_mitsuba.runtime.estimators.volpath import VolPathEstimator
 from layerbvh_mitsuba.runtime.estimators.volpathmis import VolPathMISEstimator
 
@@ -15,7 +16,8 @@ PLUGINS = {"layerbvh": ("LayerBVHIntegrator", PathEstimator),
            "layerbvh_direct": ("LayerBVHDirectIntegrator", DirectEstimator),
            "layerbvh_volpath": ("LayerBVHVolPathIntegrator", VolPathEstimator),
            "layerbvh_volpathmis": ("LayerBVHVolPathMISIntegrator", VolPathMISEstimator),
-           "layerbvh_depth": ("LayerBVHDepthIntegrator", DepthEstimator)}
+           "layerbvh_depth": ("LayerBVHDepthIntegrator", DepthEstimator),
+           "layerbvh_ptracer": ("LayerBVHParticleTracerIntegrator", ParticleTracerEstimator)}
 # Mitsuba's integrators ours stand in for, by plugin name (each estimator names the one it mirrors).
 STANDS_IN_FOR = {estimator.PLUGIN: plugin for plugin, (_, estimator) in PLUGINS.items()}
 
@@ -35,9 +37,10 @@ def is_jit_variant(variant: str | None) -> bool:
 
 def integrator_class(plugin: str = "layerbvh") -> type:
     """Our integrator `plugin` as a class of the active variant: that variant's
-    mi.SamplingIntegrator with the driver's methods (Mitsuba's base classes exist once per
-    variant, and nanobind classes take a single base, so the driver cannot be a second base),
-    its estimator as `ESTIMATOR`; `_base` is that SamplingIntegrator."""
+    mi.SamplingIntegrator (mi.AdjointIntegrator for an estimator that is ADJOINT, whose `sample`
+    is then the driver's `sample_adjoint`) with the driver's methods (Mitsuba's base classes exist
+    once per variant, and nanobind classes take a single base, so the driver cannot be a second
+    base), its estimator as `ESTIMATOR`; `_base` is that base class."""
     variant = mi.variant()
     if not is_jit_variant(variant):
         raise ValueError(f"the {plugin} integrator needs a JIT variant (llvm_* or cuda_*); the active variant is "
@@ -45,8 +48,10 @@ def integrator_class(plugin: str = "layerbvh") -> type:
     cls = _classes.get((plugin, variant))
     if cls is None:
         name, estimator = PLUGINS[plugin]
-        base = mi.SamplingIntegrator
-        cls = _classes[(plugin, variant)] = type(name, (base,), {**_DRIVER, "_base": base, "ESTIMATOR": estimator,
+        adjoint = getattr(estimator, "ADJOINT", False)
+        base = mi.AdjointIntegrator if adjoint else mi.SamplingIntegrator
+        methods = {**_DRIVER, "sample": _DRIVER["sample_adjoint"]} if adjoint else _DRIVER
+        cls = _classes[(plugin, variant)] = type(name, (base,), {**methods, "_base": base, "ESTIMATOR": estimator,
                                                                  "PLUGIN": plugin})
     return cls
 

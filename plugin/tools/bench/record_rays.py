@@ -1,4 +1,4 @@
-"""Record the rays a layerbvh render of a Mitsuba scene traces (camera, bounces by lobe, shadow) into an .npz for the benchmark."""
+"""Record the rays a layerbvh render of a Mitsuba scene traces (camera, bounces by lobe, shadow; or a particle tracer's light rays) into an .npz for the benchmark."""
 from __future__ import annotations
 
 import argparse
@@ -31,11 +31,14 @@ class Recording:
         self.recorder.save(path, self.vertices, self.faces, self.meta)
 
 
-def record_scene(mi, scene_path, res, spp: int, seed: int, cap: int) -> Recording:
-    """Render the scene with the layerbvh integrator (per_ray) and keep the rays it traces.
+def record_scene(mi, scene_path, res, spp: int, seed: int, cap: int, light: bool = False) -> Recording:
+    """Render the scene with the layerbvh integrator (per_ray) and keep the rays it traces; with
+    `light`, its particle tracer (`layerbvh_ptracer`, the scene's depths): light rays from the
+    emitters and their bounces ("light"), and each vertex's visibility from the sensor ("shadow").
     Raises UserError when the scene cannot be loaded."""
     scene = load_scene(mi, str(scene_path), tuple(res))
-    integ = mi.load_dict({"type": "layerbvh", "traversal": "per_ray", **path_props(mi, scene)})
+    props = {k: v for k, v in path_props(mi, scene).items() if not light or k in ("max_depth", "rr_depth")}
+    integ = mi.load_dict({"type": "layerbvh_ptracer" if light else "layerbvh", "traversal": "per_ray", **props})
     tracer = integ.tracer(scene)
     if tracer.geometry.analytic:
         print(f"record_rays: note: {len(tracer.geometry.analytic)} analytic shape(s) are not in the recorded "
@@ -49,7 +52,7 @@ def record_scene(mi, scene_path, res, spp: int, seed: int, cap: int) -> Recordin
     secs = time.perf_counter() - t0
     vertices, faces, _ = tracer.geometry.world_triangles()
     meta = {"scene": Path(scene_path).name, "resolution": list(res), "spp": spp, "seed": seed,
-            "triangles": len(faces), "integrator": path_props(mi, scene)}
+            "triangles": len(faces), "integrator": {"type": "ptracer" if light else "path", **props}}
     return Recording(recorder, vertices, faces, meta, secs)
 
 
@@ -74,10 +77,13 @@ def main(argv=None) -> int:
     p.add_argument("--spp", type=int, default=4)
     p.add_argument("--cap", type=int, default=1_000_000, help="rays kept per kind (default %(default)s)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--light", action="store_true",
+                   help="trace light paths from the emitters (layerbvh_ptracer, the scene's depths) instead of camera "
+                        "paths: records the 'light' kind and the sensor connections' 'shadow' rays")
     args = p.parse_args(argv)
     mi = use_variant()
     try:
-        rec = record_scene(mi, args.scene, args.res, args.spp, args.seed, args.cap)
+        rec = record_scene(mi, args.scene, args.res, args.spp, args.seed, args.cap, args.light)
     except UserError as e:
         print(f"record_rays: error: {e}", file=sys.stderr)
         return 2
