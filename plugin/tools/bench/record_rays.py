@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from layerbvh_mitsuba.ab.render import UserError, load_scene, use_variant
-from layerbvh_mitsuba.ab.scene_integrator import path_props
+from layerbvh_mitsuba.ab.scene_integrator import path_settings
 from layerbvh_mitsuba.ab.stock_cache import reference_key
 from layerbvh_mitsuba.runtime import record
 from layerbvh_mitsuba.runtime.cache import cache_dir
@@ -33,11 +33,15 @@ class Recording:
 
 def record_scene(mi, scene_path, res, spp: int, seed: int, cap: int, light: bool = False) -> Recording:
     """Render the scene with the layerbvh integrator (per_ray) and keep the rays it traces; with
-    `light`, its particle tracer (`layerbvh_ptracer`, the scene's depths): light rays from the
-    emitters and their bounces ("light"), and each vertex's visibility from the sensor ("shadow").
-    Raises UserError when the scene cannot be loaded."""
+    `light`, or where the scene's integrator is `ptracer`, its particle tracer (`layerbvh_ptracer`,
+    the scene's depths): light rays from the emitters and their bounces ("light"), and each
+    vertex's visibility from the sensor ("shadow"). Raises UserError when the scene cannot be
+    loaded."""
     scene = load_scene(mi, str(scene_path), tuple(res))
-    props = {k: v for k, v in path_props(mi, scene).items() if not light or k in ("max_depth", "rr_depth")}
+    path = path_settings(mi, scene, as_path=True)
+    light = light or path.estimator == "ptracer"
+    props = {k: v for k, v in path.props.items()
+             if k in ("max_depth", "rr_depth", "hide_emitters", "samples_per_pass")} if light else path.props
     integ = mi.load_dict({"type": "layerbvh_ptracer" if light else "layerbvh", "traversal": "per_ray", **props})
     tracer = integ.tracer(scene)
     if tracer.geometry.analytic:
