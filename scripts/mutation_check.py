@@ -69,8 +69,8 @@ MUTATIONS = (
     Mutation("between_steps_forget_held_entries", "the model's between-step bytes leave out the entries each ray "
              "writes above its global stack",
              "layerbvh/steptraffic.py",
-             "left * record_bytes + pushed * ENTRY_BYTES + improved",
-             "left * record_bytes + improved",
+             "    kernel = n * 4 + left * record_bytes + pushed * ENTRY_BYTES\n",
+             "    kernel = n * 4 + left * record_bytes\n",
              ("tests/tools/test_locality.py::test_between_step_bytes_are_what_the_kernel_stored[layer_sorted]",)),
     Mutation("tie_rule_flipped", "ties in t go to the larger primitive id",
              "layerbvh/walk.py",
