@@ -145,8 +145,8 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         if count_work:
             res.write(out, done)
         dr.eval(rec, keys, n_done_w, *counters, *res.arrays())
-        del done, out  # (unevaluated, `done` would hold the step's graph, whose reads of the entry
-        # stacks make Dr.Jit copy them whole before later scatters: copy-on-write)
+        del done, out  # (unevaluated, `done` would hold the step's graph, and with it the arrays it
+        # reads, alive into the next step)
         n_done = int(n_done_w[0])
         tb = _sync()
         n_active -= n_done
