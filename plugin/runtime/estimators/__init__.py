@@ -1,1 +1,1 @@
-"""The estimators we mirror, one file per stock integrator (path, direct, volpath, volpathmis, depth; media.py is the walk the two volumetric ones share): each samples, given its ray queries, and knows nothing of the render driver."""
+"""The estimators we mirror, one file per stock integrator (path, direct, volpath, volpathmis, depth, ptracer; media.py is the walk the two volumetric ones share): each samples, given its ray queries, and knows nothing of the render driver."""
