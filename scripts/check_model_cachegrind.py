@@ -154,6 +154,19 @@ def read_callgrind(path: Path) -> dict:
     return dict(zip(events, summary + [0] * (len(events) - len(summary))))
 
 
+def region_difference(a: dict, b: dict, n: int, what: str) -> dict:
+    """Per ray of rays n..2n: the events of the 2n-ray region `b` less those of the n-ray region
+    `a` (read misses D1, LL; D1 write misses; instructions). More events for n rays than for 2n
+    means something else ran in the n-ray region (measured once: a kernel compiled there, -430 read
+    misses per ray): a disturbed run, not a result, so it raises."""
+    out = {"D1": (b["D1mr"] - a["D1mr"]) / n, "LL": (b["DLmr"] - a["DLmr"]) / n,
+           "D1_writes": (b["D1mw"] - a["D1mw"]) / n, "instructions": (b["Ir"] - a["Ir"]) / n}
+    if min(out["D1"], out["LL"], out["instructions"]) < 0:
+        raise RuntimeError(f"{what}: the {n}-ray region counted more events than the {2 * n}-ray one "
+                           f"(something besides the trace ran in it); run the check again")
+    return out
+
+
 def cachegrind_misses(work: Path, n: int, modes: list[str], d1_kib: int, ll_kib: int) -> dict:
     """Per mode: read misses per ray of tracing rays n..2n (the region of the child that traces 2n
     rays minus that of the child that traces n). The counters are zeroed when a region starts and
@@ -172,17 +185,8 @@ def cachegrind_misses(work: Path, n: int, modes: list[str], d1_kib: int, ll_kib:
         prims = _run_child(work, k, modes, tool, f"cg_{d1_kib}_{k}", between)
         lanes = int(prims["lanes"])
         got[k] = {mode: (read_callgrind(Path(f"{cg}.{i + 1}")), prims[mode]) for i, mode in enumerate(modes)}
-    out = {}
-    for mode in modes:
-        a, b = got[n][mode][0], got[2 * n][mode][0]
-        out[mode] = {"D1": (b["D1mr"] - a["D1mr"]) / n, "LL": (b["DLmr"] - a["DLmr"]) / n,
-                     "D1_writes": (b["D1mw"] - a["D1mw"]) / n, "instructions": (b["Ir"] - a["Ir"]) / n,
-                     "prim": got[2 * n][mode][1]}
-        # More events for n rays than for 2n means something else ran in the n-ray region (measured
-        # once: a kernel compiled there, -430 read misses per ray): a disturbed run, not a result.
-        if min(out[mode]["D1"], out[mode]["LL"], out[mode]["instructions"]) < 0:
-            raise RuntimeError(f"{mode}, D1 {d1_kib} KiB: the {n}-ray region counted more events than the "
-                               f"{2 * n}-ray one (something besides the trace ran in it); run the check again")
+    out = {mode: region_difference(got[n][mode][0], got[2 * n][mode][0], n, f"{mode}, D1 {d1_kib} KiB")
+           | {"prim": got[2 * n][mode][1]} for mode in modes}
     out["lanes"] = lanes
     return out
 
@@ -373,7 +377,11 @@ def main(argv=None) -> int:
     if bad or args.rays < 1:
         p.error(f"modes must be among {', '.join(MODES)} and --rays positive")
     args.d1 = args.d1 or [32, 8]
-    doc = check(args)
+    try:
+        doc = check(args)
+    except RuntimeError as e:  # (a disturbed measurement: region_difference)
+        print(f"check_model_cachegrind: {e}", file=sys.stderr)
+        return 1
     if args.json:
         tmp = Path(args.json).with_suffix(".tmp")
         tmp.write_text(json.dumps(doc, indent=1))

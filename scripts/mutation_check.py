@@ -286,6 +286,12 @@ MUTATIONS = (
              "    return v.mean(0), v.var(0, ddof=1), ADJOINT_RENDERS\n",
              "    return v.mean(0), v.var(0, ddof=1), spp\n",
              ("tests/runtime/test_ptracer.py::test_ptracer_statistical_step_catches_a_2_percent_albedo_change",)),
+    Mutation("cachegrind_disturbed_run_tabulated", "the valgrind check tabulates a run whose N-ray region counted "
+             "more events than its 2N-ray one (negative misses per ray)",
+             "scripts/check_model_cachegrind.py",
+             '    if min(out["D1"], out["LL"], out["instructions"]) < 0:\n',
+             "    if False:\n",
+             ("tests/tools/test_model_cachegrind.py::test_a_disturbed_measurement_is_refused",)),
     Mutation("volpathmis_forgets_nee_after_scattering", "volpathmis keeps the old p_over_f_nee after a real "
              "collision in a medium (the shared walk's strategy hook does nothing)",
              "plugin/runtime/estimators/volpathmis.py",
