@@ -38,10 +38,10 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, *, stack: EntryStack | None, c
 
     With `count_work` False the work counters are left untouched (no statistics work).
     Entries pushed during this call live in a local stack of `cap` entries; entries pushed by
-    earlier steps are read (never written) from the global `stack` (state.EntryStack; None: none),
-    so the kernel has no read-after-write on global memory. Rays where `active` (default: all)
-    is False do not move. Returns the new state, whether each ray finished, the treelet it
-    continues in, and its local entries for write-back.
+    earlier steps are read from the global `stack` (state.EntryStack; None: none), never through
+    it: only through `spill` (below), after the ray's last read of it. Rays where `active`
+    (default: all) is False do not move. Returns the new state (its `treelet`: where the ray
+    continues) and whether each ray finished.
 
     In a wavefront step (the layer modes, issue 40) the kernel keeps its own books, so that
     between steps a ray moves only its state record (state.StateRecords): with `results` given, a ray
@@ -49,8 +49,7 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, *, stack: EntryStack | None, c
     u and v); with `spill` (the global stack's write alias, wavefront.trace), a ray that goes on
     writes the entries it still holds above its global stack when its walk ends, so an entry
     consumed within the step never leaves the kernel's local stack, and no kernel moves entries
-    between steps. The count returned is then 0 for a ray that finished, the state's sp already
-    counts the entries held, and the local entries returned are none.
+    between steps; the state's sp then counts the entries held.
 
     In a bounded step, an entry's treelet is known without a lookup where it matters: entries
     pushed in this step belong to the step's treelet unless they are exits (which name theirs);
@@ -66,22 +65,23 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, *, stack: EntryStack | None, c
     by (t, instance, primitive): ties in t go to the lower instance index, then the lower
     primitive id, in every mode.
     """
-    out, done, nl, local, u_best, v_best = _walk(m, lay, rays, s, stack, cap, bounded, any_hit, count_work, active,
-                                                 results, spill)
+    out, done, nl, u_best, v_best = _walk(m, lay, rays, s, stack, cap, bounded, any_hit, count_work, active,
+                                          results, spill)
     if results is None:
         out.u, out.v = u_best, v_best
     if spill is not None:  # (sp then counts the entries the ray holds: the kernel wrote them above it)
-        nl, local = dr.select(done, 0, nl), []
+        nl = dr.select(done, 0, nl)
         out.sp = out.sp + nl
-    return out, done, nl, local
+    return out, done
 
 
 @dr.syntax
 def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap: int, bounded: bool, any_hit: bool,
           count_work: bool, active, results, spill: EntryStack | None):
     """`walk`'s loop (Dr.Jit's @syntax rewrite takes positional parameters only); returns the
-    state without u and v, done, the local entry count and entries, and u, v apart. The hits
-    (`results`) are written as they happen, inside the loop; the held entries (`spill`) after it."""
+    state without u and v, done, the local entry count, and u, v apart. The hits (`results`) are
+    written as they happen, and the held entries (`spill`) on the iteration a ray's walk ends,
+    both inside the loop."""
     world_o, world_d = rays.load(s.slot)
     instanced = lay.instances is not None
     wide = lay.branching > 2  # (a plain int and bool: the loop's state takes no dataclass)
@@ -243,8 +243,7 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
         out.n_spill, out.n_hitw = n_spill, n_hitw
         if instanced:
             out.n_top, out.n_enter = n_top, n_enter
-    local = [(m.UInt32(loc_link[k]), m.Float(loc_t[k])) for k in range(cap)]
-    return out, done, nl, local, u_best, v_best
+    return out, done, nl, u_best, v_best
 
 
 @dr.syntax

@@ -75,8 +75,8 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
     t0 = _sync()
     if mode == "per_ray":
         cap = local_rows(stack_rows(lay))
-        out, done, _, _ = walk(m, lay, rays, s, stack=None, cap=cap, bounded=False, any_hit=any_hit,
-                              count_work=count_work)
+        out, done = walk(m, lay, rays, s, stack=None, cap=cap, bounded=False, any_hit=any_hit,
+                         count_work=count_work)
         res.write(out, done)
         dr.eval(*res.arrays())
         t1 = _sync()
@@ -119,8 +119,8 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         ta = _sync()
         if takes_tail(n_active, n0, stats.steps, tail_rays, tail_fraction):
             # Same nearest-first order as the steps, so the same hits and work counts.
-            out, done, _, _ = walk(m, lay, rays, s, stack=stack, cap=local_rows(cap_global), bounded=False, any_hit=any_hit,
-                                  count_work=count_work, results=res)
+            out, done = walk(m, lay, rays, s, stack=stack, cap=local_rows(cap_global), bounded=False, any_hit=any_hit,
+                             count_work=count_work, results=res)
             res.write(out, done)  # (the work counters: the kernel wrote the hits)
             dr.eval(*res.arrays())
             stats.time_traverse_s += _sync() - ta
@@ -132,8 +132,8 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         # every lane's sort key, the record of each ray that goes on and, above that ray's global
         # stack, the entries it still holds (a finished ray writes no record: on paper_mix most
         # rays finish in step 1). Nothing else moves between steps but the sort.
-        out, done, _, _ = walk(m, lay, rays, s, stack=stack, cap=cap_local, bounded=True, any_hit=any_hit,
-                               count_work=count_work, results=res, spill=spill)
+        out, done = walk(m, lay, rays, s, stack=stack, cap=cap_local, bounded=True, any_hit=any_hit,
+                         count_work=count_work, results=res, spill=spill)
         keys = out.treelet = dr.select(done, finished_key, out.treelet)
         n_step = dr.width(keys)
         rec = StateRecords.write(m, out, ~done, words)
@@ -191,6 +191,6 @@ def trace_inline(m, lay: DeviceLayout, o, d, tmax, active, *, any_hit: bool) -> 
     n = max(dr.width(x) for x in (*o, *d, tmax, active))
     s = RayState.start(m, dr.zeros(m.Float, n) + m.Float(tmax), count_work=False,  # one tmax per lane
                        instanced=lay.instances is not None)
-    out, _, _, _ = walk(m, lay, DirectRays(o, d), s, stack=None, cap=local_rows(stack_rows(lay)), bounded=False, any_hit=any_hit,
-                       count_work=False, active=active)
+    out, _ = walk(m, lay, DirectRays(o, d), s, stack=None, cap=local_rows(stack_rows(lay)), bounded=False, any_hit=any_hit,
+                  count_work=False, active=active)
     return out
