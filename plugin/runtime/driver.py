@@ -272,37 +272,40 @@ class LayerBVHIntegrator:
             calibration_s=self.calibration_s() - start["calibration_s"])
 
     # -- one render ---------------------------------------------------------------------------
+    def _render(self, scene, width: int, prepass, run):
+        """One render of `width` lanes, bracketed for statistics: auto decides (`prepass`: see
+        _prepass), the loop mode is chosen, `run(tracing)` samples, `last_stats` is kept.
+        Returns what `run` returns."""
+        state = self.scene_state(scene)
+        start = self._begin(state, width, prepass)
+        megakernel = self.megakernel()
+        tracing = Tracing(self._queries(scene, state.tracer, megakernel), state.features, megakernel)
+        out = run(tracing)
+        self._vertices = tracing.iterations
+        self._finish(state, start, megakernel)
+        return out
+
     @instances_held()
     def sample(self, scene, sampler, ray, medium=None, active=True):
         """A sampling estimator's render: every lane's camera ray `ray` (Mitsuba's SamplingIntegrator)."""
-        state = self.scene_state(scene)
-
         def prepass(sampler, k, tracing):  # (on the pass's first k camera rays)
             idx = dr.arange(mi.UInt32, k)
             take = (lambda x: x if dr.width(x) <= 1 else dr.gather(type(x), x, idx))
             cam = mi.Ray3f(take(ray.o), take(ray.d), take(ray.maxt), take(ray.time), take(ray.wavelengths))
             self.estimator.prepass(scene, sampler, cam, tracing)
-        start = self._begin(state, dr.width(ray.o), prepass)
-        megakernel = self.megakernel()
-        tracing = Tracing(self._queries(scene, state.tracer, megakernel), state.features, megakernel)
-        active = mi.Bool(active) & dr.full(mi.Bool, True, dr.width(ray.o))
-        L, valid = self.estimator.sample(scene, sampler, mi.Ray3f(ray), medium, active, tracing)
-        self._vertices = tracing.iterations
-        self._finish(state, start, megakernel)
+        def run(tracing):
+            lanes = mi.Bool(active) & dr.full(mi.Bool, True, dr.width(ray.o))
+            return self.estimator.sample(scene, sampler, mi.Ray3f(ray), medium, lanes, tracing)
+        L, valid = self._render(scene, dr.width(ray.o), prepass, run)
         return L, valid, []
 
     @instances_held()
     def sample_adjoint(self, scene, sensor, sampler, block, sample_scale):
         """An adjoint estimator's render pass (Mitsuba's AdjointIntegrator: registry.integrator_class
         makes this the class's `sample`): every lane of `sampler` splats into `block`."""
-        state = self.scene_state(scene)
-        start = self._begin(state, sampler.wavefront_size(),
-                            lambda sampler, k, tracing: self.estimator.prepass(scene, sensor, sampler, tracing))
-        megakernel = self.megakernel()
-        tracing = Tracing(self._queries(scene, state.tracer, megakernel), state.features, megakernel)
-        self.estimator.sample(scene, sensor, sampler, block, sample_scale, tracing)
-        self._vertices = tracing.iterations
-        self._finish(state, start, megakernel)
+        self._render(scene, sampler.wavefront_size(),
+                     lambda sampler, k, tracing: self.estimator.prepass(scene, sensor, sampler, tracing),
+                     lambda tracing: self.estimator.sample(scene, sensor, sampler, block, sample_scale, tracing))
 
     def _queries(self, scene, tracer: SceneTracer | None, megakernel: bool) -> RayQueries:
         """Who answers this render's queries: Embree (the control), our traversal inline (the
