@@ -14,27 +14,13 @@ from layerbvh_mitsuba import testing
 from layerbvh_mitsuba.ab import metrics
 from layerbvh_mitsuba.ab.render import use_variant
 
-SCENES = Path(__file__).resolve().parents[2] / "scenes"
 SAMPLES = {"default": "", "2e3b": '<integer name="emitter_samples" value="2"/><integer name="bsdf_samples" value="3"/>',
            "bsdf_only": '<integer name="emitter_samples" value="0"/>',
            "hidden": '<boolean name="hide_emitters" value="true"/>'}
 
 
-@pytest.fixture(autouse=True)
-def scene_files():
-    """Scenes rewritten into tmp_path still find their meshes in scenes/."""
-    use_variant()
-    mi.file_resolver().prepend(str(SCENES))
-
-
-def _direct(tmp_path, scene: str, samples: str = "default") -> Path:
-    text = (SCENES / f"{scene}.xml").read_text()
-    text, n = re.subn(r'<integrator type="path">.*?</integrator>',
-                      f'<integrator type="direct">{SAMPLES[samples]}</integrator>', text, count=1, flags=re.S)
-    assert n == 1
-    out = tmp_path / f"{scene}_direct.xml"
-    out.write_text(text)
-    return out
+def _direct(scene_as, scene: str, samples: str = "default") -> Path:
+    return scene_as(scene, f'<integrator type="direct">{SAMPLES[samples]}</integrator>', "direct")
 
 
 # Every traversal on the Cornell box; each sample setting and the multi-shape scenes in one mode
@@ -45,21 +31,21 @@ CASES = [("cbox", "default", "per_ray"), ("cbox", "default", "layer_sorted"), ("
 
 
 @pytest.mark.parametrize("scene,samples,traversal", CASES)
-def test_direct_matches_stock_direct_at_the_same_seed(tmp_path, scene, samples, traversal, layer_path_ran):
+def test_direct_matches_stock_direct_at_the_same_seed(scene_as, scene, samples, traversal, layer_path_ran):
     """Every sample drawn in stock's order (its BSDF sample's next_2d before next_1d: stock passes
     both as arguments of one call, evaluated right to left), every query ours."""
     layer = traversal.startswith("layer_")
-    r = testing.assert_matches_stock(_direct(tmp_path, scene, samples), spp=8, res=(32, 32), traversal=traversal,
+    r = testing.assert_matches_stock(_direct(scene_as, scene, samples), spp=8, res=(32, 32), traversal=traversal,
                                      ours_props={"treelet_height": 2} if layer else None)
     assert r.ours_stats.traversal == traversal and r.ours_stats.bounces in (None, 1)
     if layer:
         layer_path_ran(r.ours_stats, traversal)
 
 
-def test_the_comparison_is_against_direct(tmp_path):
+def test_the_comparison_is_against_direct(scene_as):
     """Negative control: our path tracer on the direct scene is not stock direct's image, so the
     test above compares estimators that could differ."""
-    path = _direct(tmp_path, "cbox")
+    path = _direct(scene_as, "cbox")
     scene = testing.load(path, (32, 32))
     stock = np.array(mi.render(scene, integrator=mi.load_dict({"type": "direct"}), spp=8, seed=0))
     ours_path = np.array(mi.render(scene, integrator=mi.load_dict({"type": "layerbvh", "traversal": "per_ray"}),
@@ -67,8 +53,8 @@ def test_the_comparison_is_against_direct(tmp_path):
     assert not metrics.same_seed_verdict(stock, ours_path)["passed"]
 
 
-def test_direct_passes_the_independent_seed_test(tmp_path):
-    r = testing.assert_statistically_matches_stock(_direct(tmp_path, "paper_mix"), spp=4096, res=(6, 6),
+def test_direct_passes_the_independent_seed_test(scene_as):
+    r = testing.assert_statistically_matches_stock(_direct(scene_as, "paper_mix"), spp=4096, res=(6, 6),
                                                    traversal="layer_sorted", ours_props={"treelet_height": 2})
     assert r.pixels == 36 and r.ours_stats.loop == "wavefront"
 
@@ -81,9 +67,9 @@ def test_direct_settings_are_checked_by_name():
         mi.load_dict({"type": "layerbvh_direct", "emitter_samples": 0, "bsdf_samples": 0})
 
 
-def test_direct_matches_stock_in_the_spectral_and_mono_variants(tmp_path):
+def test_direct_matches_stock_in_the_spectral_and_mono_variants(scene_as):
     """In its own process (the variant is process-wide): same seed, per_ray and layer_sorted."""
-    scene = _direct(tmp_path, "cbox", "2e3b")
+    scene = _direct(scene_as, "cbox", "2e3b")
     code = f"""
 import mitsuba as mi, numpy as np
 for v in ("llvm_ad_spectral", "llvm_ad_mono"):

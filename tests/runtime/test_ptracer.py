@@ -1,7 +1,6 @@
 """`layerbvh_ptracer` (issue 43): light paths through our traversal against stock `ptracer`, same seed and statistically, with a negative control; its settings and its light rays."""
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 import mitsuba as mi
@@ -11,28 +10,16 @@ import pytest
 import layerbvh_mitsuba  # noqa: F401  (registers the integrators)
 from layerbvh_mitsuba import testing
 from layerbvh_mitsuba.ab import metrics
-from layerbvh_mitsuba.ab.render import use_variant
 from layerbvh_mitsuba.ab.scene_integrator import path_settings
 
 SCENES = Path(__file__).resolve().parents[2] / "scenes"
 LAYER_HEIGHT = 2  # (as in test_mitsuba_backend: cbox at the default height is one treelet)
 
 
-@pytest.fixture(autouse=True)
-def scene_files():
-    """Scenes rewritten into tmp_path still find their meshes in scenes/."""
-    use_variant()
-    mi.file_resolver().prepend(str(SCENES))
-
-
-def _ptracer(tmp_path, scene: str) -> Path:
-    """The scene's ptracer version: its `path` integrator replaced by `ptracer` (at its max_depth)."""
-    text, n = re.subn(r'<integrator type="path">', '<integrator type="ptracer">',
-                      (SCENES / f"{scene}.xml").read_text(), count=1)
-    assert n == 1
-    out = tmp_path / f"{scene}_ptracer.xml"
-    out.write_text(text)
-    return out
+def _ptracer(scene_as, scene: str) -> Path:
+    """The scene's ptracer version, at its max_depth."""
+    return scene_as(scene, '<integrator type="ptracer"><integer name="max_depth" value="$max_depth"/></integrator>',
+                    "ptracer")
 
 
 def _ours(traversal: str) -> dict | None:
@@ -46,7 +33,7 @@ VERDICT = {"cbox": metrics.SAME_PATHS, "bunny_box": metrics.AGREES, "paper_mix":
 
 @pytest.mark.parametrize("name,traversal", [("cbox", "per_ray"), ("cbox", "layer_sorted"), ("cbox", "embree"),
                                             ("bunny_box", "layer_unsorted"), ("paper_mix", "auto")])
-def test_ptracer_agrees_with_stock(tmp_path, name, traversal):
+def test_ptracer_agrees_with_stock(scene_as, name, traversal):
     """The scene's ptracer version, stock `ptracer` against ours, the two-step
     verdict at its users' settings (the scene's max_depth). Same seed, stock's draws in stock's
     order: `embree` (our loop with Mitsuba's queries) gives stock's image to float noise, and our
@@ -54,7 +41,7 @@ def test_ptracer_agrees_with_stock(tmp_path, name, traversal):
     return the other triangle, and that light path goes elsewhere and splats on other pixels:
     on bunny_box (69k triangles) 99.6% of pixels stay within tolerance, on paper_mix (glass,
     mirrors) 97%, so the statistical step decides there."""
-    v = testing.verdict_vs_stock(_ptracer(tmp_path, name), spp=8, res=(32, 32), traversal=traversal,
+    v = testing.verdict_vs_stock(_ptracer(scene_as, name), spp=8, res=(32, 32), traversal=traversal,
                                  ours_props=_ours(traversal))
     assert v.label == VERDICT[name], f"{name} ({traversal}): {v.label}: {v.summary()}"
     same = v.same_seed["values"]
@@ -63,16 +50,16 @@ def test_ptracer_agrees_with_stock(tmp_path, name, traversal):
         assert same["max_abs"] < 1e-4, same
 
 
-def test_ptracer_layer_path_ran(tmp_path, layer_path_ran):
+def test_ptracer_layer_path_ran(scene_as, layer_path_ran):
     """The layer modes really trace ptracer's light paths in wavefront steps."""
-    scene = testing.load(_ptracer(tmp_path, "cbox"), (16, 16))
+    scene = testing.load(_ptracer(scene_as, "cbox"), (16, 16))
     integ = mi.load_dict({"type": "layerbvh_ptracer", "traversal": "layer_sorted", "treelet_height": LAYER_HEIGHT})
     img = np.array(mi.render(scene, integrator=integ, spp=4, seed=1))
     assert np.isfinite(img).all() and img.mean() > 0.01
     layer_path_ran(integ.last_stats, "layer_sorted")
 
 
-def test_ptracer_statistical_step_catches_a_2_percent_albedo_change(tmp_path):
+def test_ptracer_statistical_step_catches_a_2_percent_albedo_change(scene_as):
     """Negative control of the verdict's second step for an adjoint integrator (moments from
     independent renders, verdict.ADJOINT_RENDERS): ours with the floor 2% brighter must fail,
     and the same configuration passes unchanged."""
@@ -80,9 +67,9 @@ def test_ptracer_statistical_step_catches_a_2_percent_albedo_change(tmp_path):
         key = "FloorBSDF.brdf_0.reflectance.value"
         params[key] = params[key] * 1.02
     kw = {"spp": 16384, "res": (6, 6)}
-    same = testing.independent_seeds_vs_stock(_ptracer(tmp_path, "cbox"), **kw)
+    same = testing.independent_seeds_vs_stock(_ptracer(scene_as, "cbox"), **kw)
     assert metrics.z_test_passed(same.pass_fraction), same
-    off = testing.independent_seeds_vs_stock(_ptracer(tmp_path, "cbox"), modify=brighter_floor, **kw)
+    off = testing.independent_seeds_vs_stock(_ptracer(scene_as, "cbox"), modify=brighter_floor, **kw)
     assert not metrics.z_test_passed(off.pass_fraction), off
 
 

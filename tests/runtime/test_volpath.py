@@ -215,17 +215,10 @@ def test_volpathmis_settings_come_from_the_scene_file(tmp_path):
     assert s.compared_as == "moment(volpathmis)" and s.props["use_spectral_mis"] is False, s
 
 
-def test_a_scene_without_media_leaves_media_out_and_keeps_the_image(tmp_path):
+def test_a_scene_without_media_leaves_media_out_and_keeps_the_image(scene_as):
     """volpath on the Cornell box: no medium and no null surface, so no free-flight sampling and
     any-hit shadow rays; the image is the one everything-on renders, and stock's."""
-    text = (SCENES / "cbox.xml").read_text()
-    text, n = re.subn(r'<integrator type="path">.*?</integrator>', '<integrator type="volpath"/>', text, count=1,
-                      flags=re.S)
-    assert n == 1
-    path = tmp_path / "cbox_volpath.xml"
-    path.write_text(text)
-    mi.file_resolver().prepend(str(SCENES))
-    scene = testing.load(path, (24, 24))
+    scene = testing.load(scene_as("cbox", '<integrator type="volpath"/>', "volpath"), (24, 24))
     images = {}
     for adaptive in (True, False):
         integ = mi.load_dict({"type": "layerbvh_volpath", "traversal": "per_ray", "adaptive": adaptive})
