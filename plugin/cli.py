@@ -33,7 +33,7 @@ from layerbvh_mitsuba.tools import converge
 from layerbvh_mitsuba.tools.bench import locality
 from layerbvh_mitsuba.tools.sweep import grid as sweep
 
-AS_PATH_HELP = (f"the scene's integrator is none of {SUPPORTED} (prb, stokes, ...): render both sides with path "
+AS_PATH_HELP = (f"the scene's integrator is none of {SUPPORTED} (stokes, the projective integrators, ...): render both sides with path "
                 "anyway, with the settings read from it where it has them (without this, such a scene is refused)")
 
 
@@ -81,6 +81,9 @@ def _parser() -> argparse.ArgumentParser:
     c = sub.add_parser("compare", help="A/B: stock path (Embree) vs layerbvh, with metrics and an HTML report")
     common(c)
     c.add_argument("--out", required=True, help="output folder")
+    c.add_argument("--grad", metavar="KEY", help="also compare the derivatives with respect to the scene parameter "
+                   "KEY (a mi.traverse key, e.g. red.reflectance.value), forward (an image) and backward (the "
+                   "gradient of the image's sum), with the same two-step verdict; needs prb, prb_basic or prbvolpath")
     v = sub.add_parser("converge", help="error against run time: stock and layerbvh configurations at 1, 2, 4, ... spp "
                                         "within a time budget, scored against a cached stock reference")
     _scene_and_film(v)
@@ -147,7 +150,7 @@ def _settings(args) -> CompareSettings:
     return CompareSettings(scene=args.scene, spp=args.spp, res=tuple(args.res) if args.res else None, seed=args.seed,
                            traversal=args.traversal, treelet_height=args.treelet_height, branching=args.branching,
                            leaf_size=args.leaf_size, as_path=args.as_path, control=True, statistics_pass=True,
-                           progress=not args.no_progress)
+                           progress=not args.no_progress, grad=getattr(args, "grad", None))
 
 
 def cmd_render(mi, args) -> int:
@@ -185,6 +188,8 @@ def cmd_compare(mi, args) -> int:
     write_comparison(args.out, c)
     print(c.summary())
     print(f"verdict: {c.verdict.label} ({c.verdict.summary()})")
+    if c.gradient is not None:
+        print(f"gradient verdict: {c.gradient.label} ({c.gradient.summary()})")
     print(str(Path(args.out).resolve() / "index.html"))
     return 0
 

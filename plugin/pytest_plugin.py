@@ -73,8 +73,9 @@ def _record(config, nodeid: str, result) -> None:
     out = _results_dir(config)
     if out is None:
         return
+    summary = result.verdict.summary() + ("" if result.gradient is None else f"; {result.gradient.summary()}")
     rec = {"test": nodeid, "scene": result.scene, "traversal": result.traversal, "label": result.verdict.label,
-           "passed": result.passed, "summary": result.verdict.summary(), "stock_s": result.stock_s,
+           "passed": result.passed, "summary": summary, "stock_s": result.stock_s,
            "stock_cached": result.stock_cached, "ours_s": result.ours_s, "rmse": result.metrics["rmse"],
            "page": os.path.relpath(result.page, out) if result.page else None}
     (out / RECORDS).mkdir(parents=True, exist_ok=True)
@@ -83,16 +84,18 @@ def _record(config, nodeid: str, result) -> None:
 
 @pytest.fixture
 def layerbvh_ab(request, layerbvh_traversal):
-    """`layerbvh_ab(scene, spp=16, res=(64, 64), traversal="auto", seed=0, ours={...}, **params)`:
+    """`layerbvh_ab(scene, spp=16, res=(64, 64), traversal="auto", seed=0, ours={...}, grad=None, **params)`:
     render the scene with stock `path` and with layerbvh (`ours`: integrator properties for our
     side only; `params`: the scene's $parameters), same seed, and assert the two-step verdict
-    (same paths, or agreement within Monte Carlo noise at independent seeds). Returns the
-    ABResult; raises an AssertionError with one readable paragraph when the verdict fails."""
+    (same paths, or agreement within Monte Carlo noise at independent seeds). With `grad` (a
+    mi.traverse key of a prb, prb_basic or prbvolpath scene) the derivatives with respect to that
+    parameter must pass the same two steps too (`layerbvh compare --grad`). Returns the
+    ABResult; raises an AssertionError with one readable paragraph when a verdict fails."""
     from layerbvh_mitsuba.testing import run_check  # local: Mitsuba loads when a test asks for a check
     config = request.config
     calls = []
 
-    def check(scene, spp=16, res=(64, 64), traversal="auto", seed=0, ours=None, **params):
+    def check(scene, spp=16, res=(64, 64), traversal="auto", seed=0, ours=None, grad=None, **params):
         __tracebackhide__ = True  # a failure shows the user's line and the message, not ours
         mode = layerbvh_traversal or traversal
         out = _results_dir(config)
@@ -100,7 +103,7 @@ def layerbvh_ab(request, layerbvh_traversal):
         result = run_check(scene, spp=spp, res=res, traversal=mode, seed=seed, ours=ours,
                            variant=config.getoption("--layerbvh-variant"),
                            use_cache=not config.getoption("--layerbvh-no-cache"), keep_dir=keep,
-                           keep_all=config.getoption("--layerbvh-keep-all"), **params)
+                           keep_all=config.getoption("--layerbvh-keep-all"), grad=grad, **params)
         calls.append(result)
         _record(config, request.node.nodeid + (f" [{len(calls)}]" if len(calls) > 1 else ""), result)
         if not result.passed:

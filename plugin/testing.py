@@ -1,4 +1,4 @@
-"""Reusable pytest helpers: check that the layerbvh integrator renders a scene like stock Mitsuba (same seed, and statistically), each an `ab.compare.compare` run."""
+"""Reusable pytest helpers: check that the layerbvh integrator renders a scene (and, for prb and its kin, its derivatives) like stock Mitsuba (same seed, and statistically), each an `ab.compare.compare` run."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -148,29 +148,37 @@ class ABResult:
         return self.comparison.stock_time.cached
 
     @property
+    def gradient(self):
+        """The derivatives' comparison (ab.gradient.GradientComparison) of a check with `grad`, else None."""
+        return self.comparison.gradient
+
+    @property
     def passed(self) -> bool:
-        return self.verdict.passed
+        return self.verdict.passed and (self.gradient is None or self.gradient.passed)
 
     def message(self) -> str:
         """One readable paragraph: the verdict, its numbers, where the page is."""
         m = self.metrics
         where = f" Page: {self.page}" if self.page else " (run with --layerbvh-results DIR to keep its page)"
-        return (f"{self.scene} ({self.traversal}): {self.verdict.label}. {self.verdict.summary()}. "
+        grad = "" if self.gradient is None else f" {self.gradient.summary()}."
+        return (f"{self.scene} ({self.traversal}): {self.verdict.label}. {self.verdict.summary()}.{grad} "
                 f"RMSE {m['rmse']:.3g}, relMSE {m['rel_mse']:.3g}, pixels over 1e-3 "
                 f"{100 * m['frac_pixels_over_1e-3']:.2f}%; stock {self.stock_s:.2f} s"
                 f"{' (cached)' if self.stock_cached else ''}, ours {self.ours_s:.2f} s.{where}")
 
 
 def run_check(scene, spp=16, res=(64, 64), traversal="auto", seed=0, ours=None, variant=None, use_cache=True,
-              keep_dir: Path | None = None, keep_all=False, ours_modify=None, **params) -> ABResult:
+              keep_dir: Path | None = None, keep_all=False, ours_modify=None, grad=None, **params) -> ABResult:
     """The A/B check of the pytest plugin and `verdict_vs_stock`: `compare` of stock `path` (the
     scene's own path settings; with `use_cache`, cached by scene content and settings) against
     layerbvh with `ours` integrator properties on top (and `ours_modify(params)` applied to its
-    copy of the scene: negative controls), same seed, then the two-step verdict; the compare
-    page is written to `keep_dir` when the check fails (or always with `keep_all`)."""
+    copy of the scene: negative controls), same seed, then the two-step verdict, and with `grad`
+    (a mi.traverse key; prb, prb_basic, prbvolpath) the derivatives' verdict too (`compare
+    --grad`); the compare page is written to `keep_dir` when the check fails (or always with
+    `keep_all`)."""
     mi = use_variant(variant)
     c = compare(mi, settings(Path(scene).resolve(), spp, res, seed, traversal, ours, params, ours_modify=ours_modify,
-                             stock_cache=cache_dir("pytest") if use_cache else None))
+                             stock_cache=cache_dir("pytest") if use_cache else None, grad=grad))
     result = ABResult(scene=str(scene), traversal=traversal, comparison=c)
     if keep_dir is not None and (keep_all or not c.passed):
         write_comparison(keep_dir, c)

@@ -283,9 +283,39 @@ MUTATIONS = (
     Mutation("adjoint_moments_per_sample", "the verdict's second step takes an adjoint integrator's per-render "
              "variance for a per-sample one (far too strict: equal estimators fail)",
              "plugin/ab/verdict.py",
-             "    return v.mean(0), v.var(0, ddof=1), ADJOINT_RENDERS\n",
+             "    return v.mean(0), v.var(0, ddof=1), MOMENT_RENDERS\n",
              "    return v.mean(0), v.var(0, ddof=1), spp\n",
              ("tests/runtime/test_ptracer.py::test_ptracer_statistical_step_catches_a_2_percent_albedo_change",)),
+    Mutation("prb_forward_clears_parameter_gradients", "forward-mode replay in the wavefront loop uses Dr.Jit's "
+             "default flags, which clear the parameters' gradients after the first vertex",
+             "plugin/runtime/estimators/replay.py",
+             "    flags = dr.ADFlag.Default if megakernel else dr.ADFlag.ClearEdges | dr.ADFlag.ClearInterior\n",
+             "    flags = dr.ADFlag.Default\n",
+             ("tests/runtime/test_prb.py::test_gradients_same_seed_as_stock[prb-cbox-layer_sorted]",)),
+    Mutation("prb_emitter_visibility_ignored", "prb's emitter samples count whether or not our shadow query finds "
+             "them occluded",
+             "plugin/runtime/estimators/common.py",
+             "        weight = dr.select(occluded, 0, weight)\n        ds.pdf = dr.select(occluded, 0, ds.pdf)\n",
+             "",
+             ("tests/runtime/test_prb.py::test_primal_same_seed_as_stock[prb-bunny_box-per_ray]",)),
+    Mutation("prb_reflection_not_reattached", "prb's replay pushes emission and emitter samples but not the "
+             "reflected rest of the path (Lr_ind left out)",
+             "plugin/runtime/estimators/prb.py",
+             "                dL = propagate(mode, dL, Le + Lr_dir + Lr_ind, s.active, tr.megakernel)\n",
+             "                dL = propagate(mode, dL, Le + Lr_dir, s.active, tr.megakernel)\n",
+             ("tests/runtime/test_prb.py::test_gradients_same_seed_as_stock[prb-bunny_box-per_ray]",)),
+    Mutation("gradient_step_underpowered", "the gradient verdict's second step takes 2^14 samples a side: a "
+             "parameter 2% off passes",
+             "plugin/ab/gradient.py",
+             "GRAD_SAMPLES = 1 << 20\n",
+             "GRAD_SAMPLES = 1 << 14\n",
+             ("tests/runtime/test_prb.py::test_gradient_statistical_step_and_its_negative_control",)),
+    Mutation("prbvolpath_nee_not_replayed", "prbvolpath's replay skips the emitter sample's transmittance "
+             "derivatives",
+             "plugin/runtime/estimators/prbvolpath.py",
+             "                self.sample_emitter(*args, nee_sampler, mode, adj_emitted=contrib, dL=dL)\n",
+             "",
+             ("tests/runtime/test_prb.py::test_prbvolpath_in_media_same_seed_and_backward",)),
     Mutation("cachegrind_disturbed_run_tabulated", "the valgrind check tabulates a run whose N-ray region counted "
              "more events than its 2N-ray one (negative misses per ray)",
              "scripts/check_model_cachegrind.py",

@@ -12,6 +12,7 @@ import numpy as np
 
 import layerbvh
 from layerbvh_mitsuba.ab import metrics
+from layerbvh_mitsuba.ab.gradient import GradientComparison, check_gradient, compare_gradients
 from layerbvh_mitsuba.ab.page import split_share
 from layerbvh_mitsuba.ab.render import TimedRender, load_integrator, load_scene, scene_spp, timed_render
 from layerbvh_mitsuba.ab.memory import check_memory
@@ -46,6 +47,7 @@ class CompareSettings:
     control: bool = False                 # also time our loop with Embree's queries: traversal vs loop
     statistics_pass: bool = False         # a counted pass: traversal statistics and heat maps
     statistical_step: bool = True         # where same-seed paths diverge, the independent-seed test
+    grad: str | None = None               # also compare derivatives w.r.t. this mi.traverse key (ab/gradient.py)
     stock_cache: Path | None = None       # keep stock's image there (stock_cache.cached_stock)
     progress: bool = False
 
@@ -99,6 +101,7 @@ class Comparison:
     counted: RenderStats | None = None   # the statistics pass
     counted_time: SideTime | None = None
     heatmaps: dict = field(default_factory=dict, repr=False)
+    gradient: GradientComparison | None = None          # with settings.grad
     scene: object = field(default=None, repr=False)       # the loaded scene (stock's copy)
     integrator: object = field(default=None, repr=False)  # ours, as it rendered (its tracer holds the BVH)
 
@@ -153,6 +156,8 @@ class Comparison:
         if self.control_time is not None:
             info["embree_control"] = self.control_time.as_dict()
             info["split"] = self.split()
+        if self.gradient is not None:
+            info["gradient"] = self.gradient.as_dict()
         return info
 
     def summary(self) -> str:
@@ -167,7 +172,8 @@ class Comparison:
         return (f"stock {st:.2f} s, layerbvh {ou:.2f} s{ratio}{split} (not counted: build {self.stats.build_s:.2f} s, "
                 f"compile {self.ours_time.compile_s:.2f} s, calibration {self.ours_time.calibration_s:.2f} s); "
                 f"rmse {m['rmse']:.3g}, FLIP {m['flip_mean']:.3g}, pixels > 1e-3: "
-                f"{100 * m['frac_pixels_over_1e-3']:.3f}%")
+                f"{100 * m['frac_pixels_over_1e-3']:.3f}%"
+                + ("" if self.gradient is None else f"; {self.gradient.summary()}"))
 
 
 def ours_props(s: CompareSettings, path: PathSettings, traversal: Traversal | None = None, stats: bool = False) -> dict:
@@ -241,6 +247,8 @@ def compare(mi, s: CompareSettings, scene=None) -> Comparison:
     path = path_settings(mi, scene, s.as_path, scene_path, s.params)
     if s.path_overrides:
         path.props.update(s.path_overrides)
+    if s.grad is not None:  # (refused before anything renders)
+        check_gradient(mi, path.estimator, scene, s.grad)
     ours_all = ours_props(s, path)
     ours_scene = scene
     if s.ours_modify is not None:
@@ -293,8 +301,13 @@ def compare(mi, s: CompareSettings, scene=None) -> Comparison:
     else:
         verdict = same_seed_only(stock_img, ours_img)
     h, w = stock_img.shape[:2]
+    gradient = None
+    if s.grad is not None:
+        gradient = _stage(OURS, "render", lambda: compare_gradients(
+            mi, path.estimator, scene_path, scene, ours_scene, (w, h), spp, s.seed, path.stock_inner(), ours_all,
+            s.grad, dict(s.params), s.ours_modify, s.statistical_step))
     return Comparison(settings=s, spp=spp, resolution=(w, h), variant=mi.variant(), path=path, ours_props=ours_all,
                       stock=stock_img, ours=ours_img, nonfinite=(bad_stock, bad_ours), stock_time=stock_time,
                       ours_time=ours_time, stats=stats, verdict=verdict,
                       control_time=control_time, counted=counted, counted_time=counted_time, heatmaps=heatmaps,
-                      scene=scene, integrator=ours)
+                      gradient=gradient, scene=scene, integrator=ours)

@@ -110,11 +110,12 @@ def same_seed_verdict(ref, test, tol: float = SAME_SEED_TOL, min_frac: float = S
                       max_mean_rel: float = SAME_SEED_MAX_MEAN_REL) -> dict:
     """Does a same-seed render equal the reference up to floating-point noise? {passed,
     criterion, values}: the share of pixels whose every channel is within `tol`, and the mean
-    |diff| against the mean pixel value."""
+    |diff| against the mean |pixel value|."""
     r, t = _pair(ref, test)
     d = np.abs(t.astype(np.float64) - r)
     within = d.max(-1) <= tol * np.maximum(1.0, np.abs(r.astype(np.float64)).max(-1))
-    frac, mean_abs, mean_ref = float(np.mean(within)), float(d.mean()), float(r.astype(np.float64).mean())
+    # (The mean |stock|: a gradient image is signed.)
+    frac, mean_abs, mean_ref = float(np.mean(within)), float(d.mean()), float(np.abs(r.astype(np.float64)).mean())
     return {"passed": frac >= min_frac and mean_abs <= max_mean_rel * mean_ref,
             "criterion": f"same seed: >= {100 * min_frac:g}% of pixels within {tol:g} x max(1, |stock|) in every "
                          f"channel and mean |diff| <= {max_mean_rel:g} x mean pixel",

@@ -262,9 +262,39 @@ def _verdict_html(v: dict) -> str:
             f'<div class="small">criterion: {esc(str(v.get("criterion", "")))}</div></div>')
 
 
-def render_page(rep: dict, stock: np.ndarray, ours: np.ndarray, maps: dict, heatmaps: list) -> str:
+def _gradient_html(g: dict | None, figures: list, width: int) -> str:
+    """The gradient comparison (gradient.GradientComparison.as_dict): its verdict, the backward
+    gradients side by side, and the forward derivative images [(title, png, bar)]."""
+    if not g:
+        return ""
+    esc = html.escape
+    passed = bool(g.get("passed"))
+    z = g.get("statistical")
+    how = "same seed: every derivative within the image criterion" if g.get("label") == "same paths" else (
+        "same-seed derivatives diverged" + ("" if not z else
+                                            f"; independent seeds, {z.get('renders')} renders a side at {z.get('spp')} "
+                                            f"spp on a {z['resolution'][0]}×{z['resolution'][1]} film: "
+                                            f"{esc(str(z.get('test', '')))}, {_g(z.get('seconds'))} s"))
+    b = g.get("backward", {})
+    rows = _rows((f"<td>{i}</td>", _td(s), _td(o)) for i, (s, o) in enumerate(zip(b.get("stock", []),
+                                                                                   b.get("ours", []))))
+    figs = "".join(f'<figure><img src="{esc(png)}" alt="{esc(t)}" width="{width}"><figcaption><b>{esc(t)}</b>{bar}'
+                   f'</figcaption></figure>' for t, png, bar in figures)
+    if not g.get("forward"):
+        figs = '<p class="small">The integrator has no forward mode (prbvolpath): the backward gradient only.</p>'
+    return (f"<h2>Derivatives with respect to {esc(str(g.get('key')))}</h2>\n"
+            f'<div class="verdict {"pass" if passed else "fail"}" id="gradient-verdict" '
+            f'data-passed="{str(passed).lower()}"><b>{esc(str(g.get("label")))}</b><div class="small">{how}</div></div>'
+            f'<div class="maps">{figs}</div><p class="small">Backward: the gradient of the image\'s sum with respect '
+            f'to each of the parameter\'s {b.get("components")} components (the first 64 shown).</p>'
+            f"<table><tr><th>component</th><th>stock</th><th>ours</th></tr>{rows}</table>\n")
+
+
+def render_page(rep: dict, stock: np.ndarray, ours: np.ndarray, maps: dict, heatmaps: list,
+                gradient: list | None = None) -> str:
     """The page for a report dict (as in report.json), its two images (linear RGB), the error
-    maps {"diff": (png name, colour bar html), "flip": ...} and heat maps [(title, png, bar)]."""
+    maps {"diff": (png name, colour bar html), "flip": ...}, heat maps [(title, png, bar)] and the
+    derivative images of a gradient comparison [(title, png, bar)]."""
     esc = html.escape
     h, w = stock.shape[:2]
     title = Path(str(rep.get("scene", "scene"))).name
@@ -327,6 +357,7 @@ def render_page(rep: dict, stock: np.ndarray, ours: np.ndarray, maps: dict, heat
         verdict, as_path,
         "<h2>Stock and ours</h2>\n", controls, f'<div class="viewer">{canvas}{side}</div>\n',
         "<h2>Where they differ</h2>\n", f'<div class="maps">{map_figs}</div>\n',
+        _gradient_html(rep.get("gradient"), gradient or [], w * max(1, scale // 2)),
         "<h2>Metrics (ours against stock)</h2>\n", _metrics_table(rep.get("metrics", {})),
         "<h2>Timings</h2>\n", _timing_table(rep),
         heat,

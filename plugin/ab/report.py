@@ -1,4 +1,4 @@
-"""A/B report folder for stock vs ours (EXRs, PNGs, error and heat maps, report.json with the verdict, index.html), written whole."""
+"""A/B report folder for stock vs ours (EXRs, PNGs, error and heat maps, derivative images, report.json with the verdict, index.html), written whole."""
 from __future__ import annotations
 
 import io
@@ -11,6 +11,7 @@ import numpy as np
 
 from layerbvh_mitsuba.ab import metrics, page
 from layerbvh_mitsuba.ab.compare import Comparison
+from layerbvh_mitsuba.ab.gradient import GradientComparison
 from layerbvh_mitsuba.ab.render import write_exr
 from layerbvh_mitsuba.ab.verdict import StatisticalStep, Verdict, same_seed_only
 from layerbvh_mitsuba.atomic import atomic_folder
@@ -69,9 +70,10 @@ def json_safe(x):
     return str(x)  # paths, enums, ...: a report should not die over an exotic info value
 
 
-def render_html(rep: dict, stock: np.ndarray, ours: np.ndarray, maps: dict, heatmaps: list) -> str:
+def render_html(rep: dict, stock: np.ndarray, ours: np.ndarray, maps: dict, heatmaps: list,
+                gradient: list | None = None) -> str:
     """The self-contained index.html (page.render_page)."""
-    return page.render_page(rep, stock, ours, maps, heatmaps)
+    return page.render_page(rep, stock, ours, maps, heatmaps, gradient)
 
 
 def _write_bytes(path: Path, data: bytes) -> None:
@@ -79,8 +81,35 @@ def _write_bytes(path: Path, data: bytes) -> None:
         f.write(data)
 
 
+def gradient_pngs(stock: np.ndarray, ours: np.ndarray) -> tuple[bytes, bytes, float]:
+    """Two signed derivative images (the largest-magnitude channel of each pixel, sign kept) in
+    one diverging colour map (RdBu: red positive, blue negative, white 0), both scaled by the
+    DIFF_PERCENTILE-th percentile of stock's |values|; and that scale."""
+    def signed(img):
+        idx = np.abs(img).argmax(-1)[..., None]
+        return np.take_along_axis(img, idx, -1)[..., 0]
+    s, o = signed(stock), signed(ours)
+    scale = float(np.percentile(np.abs(s), DIFF_PERCENTILE)) or float(np.abs(s).max()) or 1.0
+    png = (lambda v: to_png_bytes(_colour_map(0.5 - 0.5 * np.clip(v / scale, -1, 1), "RdBu")))
+    return png(s), png(o), scale
+
+
+def _write_gradient(tmp: Path, g: GradientComparison | None) -> list:
+    """The derivative images of a gradient comparison (EXR and PNG), as the page's figures."""
+    if g is None or g.stock.forward is None:
+        return []
+    write_exr(tmp / "stock_grad.exr", g.stock.forward.astype(np.float32))
+    write_exr(tmp / "ours_grad.exr", g.ours.forward.astype(np.float32))
+    s_png, o_png, scale = gradient_pngs(g.stock.forward, g.ours.forward)
+    _write_bytes(tmp / "stock_grad.png", s_png)
+    _write_bytes(tmp / "ours_grad.png", o_png)
+    bar = page.colour_bar("RdBu_r", f"−{scale:.3g}", f"{scale:.3g}", f"d image / d {g.key} (the largest channel, "
+                          f"signed); the ends are the {DIFF_PERCENTILE:g}th percentile of |stock|")
+    return [("stock", "stock_grad.png", bar), ("ours", "ours_grad.png", bar)]
+
+
 def _write_all(tmp: Path, stock: np.ndarray, ours: np.ndarray, rep: dict, flip_map: np.ndarray,
-               heatmaps: dict, statistical: StatisticalStep | None) -> None:
+               heatmaps: dict, statistical: StatisticalStep | None, gradient: GradientComparison | None = None) -> None:
     write_exr(tmp / "stock.exr", stock)
     write_exr(tmp / "ours.exr", ours)
     _write_bytes(tmp / "stock.png", to_png_bytes(metrics.tonemap_srgb(stock)))
@@ -113,20 +142,23 @@ def _write_all(tmp: Path, stock: np.ndarray, ours: np.ndarray, rep: dict, flip_m
         write_exr(tmp / f"heat_{name}.exr", np.repeat(img[:, :, None], 3, 2))
         heat.append((HEATMAP_TITLES.get(name, name), f"heat_{name}.png",
                      page.colour_bar("inferno", "0", f"{top:.3g}", "per pixel sample (mean)")))
+    grad = _write_gradient(tmp, gradient)
     _write_bytes(tmp / "report.json", (json.dumps(rep, indent=2, allow_nan=False) + "\n").encode())
-    _write_bytes(tmp / "index.html", render_html(rep, stock, ours, maps, heat).encode())
+    _write_bytes(tmp / "index.html", render_html(rep, stock, ours, maps, heat, grad).encode())
 
 
 REPORT_MARKER = "report.json"  # the file that makes a folder a compare report
 
 
 def write_report(out_dir, stock_img, ours_img, info: dict, heatmaps: dict | None = None,
-                 judged: Verdict | None = None, measured: tuple[dict, np.ndarray] | None = None) -> dict:
+                 judged: Verdict | None = None, measured: tuple[dict, np.ndarray] | None = None,
+                 gradient: GradientComparison | None = None) -> dict:
     """Write the stock-vs-ours report folder `out_dir` and return the report dict (= report.json).
 
     `judged` is the two-step verdict (verdict.judge); without it only the same-seed step is
     taken from the images. `measured`: the images' metrics and ꟻLIP map where the caller has them
-    (Comparison.measured), else measured here. Written into a temporary sibling folder that then replaces `out_dir`
+    (Comparison.measured), else measured here. `gradient`: its derivative images are written too
+    (info["gradient"] holds its verdict). Written into a temporary sibling folder that then replaces `out_dir`
     whole (atomic.atomic_folder): a crash leaves nothing half-written, and the folder's files
     always come from one run."""
     stock, ours = metrics.as_rgb(stock_img, "stock"), metrics.as_rgb(ours_img, "ours")
@@ -134,7 +166,7 @@ def write_report(out_dir, stock_img, ours_img, info: dict, heatmaps: dict | None
     judged = judged or same_seed_only(stock, ours)
     rep = json_safe({**dict(info), "metrics": m, "verdict": judged.as_dict()})
     with atomic_folder(out_dir, REPORT_MARKER) as tmp:
-        _write_all(tmp, stock, ours, rep, flip_map, heatmaps or {}, judged.statistical)
+        _write_all(tmp, stock, ours, rep, flip_map, heatmaps or {}, judged.statistical, gradient)
     return rep
 
 
@@ -154,4 +186,4 @@ def heatmap_png(values: np.ndarray) -> tuple[bytes, float]:
 
 def write_comparison(out_dir, c: Comparison) -> dict:
     """The report folder of one comparison (ab.compare.compare); returns report.json's dict."""
-    return write_report(out_dir, c.stock, c.ours, c.info(), c.heatmaps, c.verdict, c.measured)
+    return write_report(out_dir, c.stock, c.ours, c.info(), c.heatmaps, c.verdict, c.measured, c.gradient)

@@ -6,7 +6,7 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 
-from layerbvh_mitsuba.runtime.registry import STANDS_IN_FOR
+from layerbvh_mitsuba.runtime.registry import STANDS_IN_FOR, sampling
 from layerbvh_mitsuba.ab.render import UserError, signed_depth
 
 
@@ -20,10 +20,13 @@ INTEGRATOR_PLUGINS = {
     "VolpathMisIntegratorImpl": "volpathmis", "VolumetricMisPathIntegrator": "volpathmis",
     "DirectIntegrator": "direct", "AOVIntegrator": "aov", "MomentIntegrator": "moment",
     "ParticleTracerIntegrator": "ptracer", "DepthIntegrator": "depth", "StokesIntegrator": "stokes",
-    "PRBIntegrator": "prb", "LayerBVHIntegrator": "layerbvh",
+    "PRBIntegrator": "prb", "BasicPRBIntegrator": "prb_basic", "PRBVolpathIntegrator": "prbvolpath",
+    "LayerBVHIntegrator": "layerbvh",
 }
 WRAPPERS = ("aov", "moment", "stokes")  # integrators that run others and add channels
-ESTIMATORS = tuple(STANDS_IN_FOR)  # Mitsuba's integrators ours mirror: path, direct, volpath, volpathmis
+ESTIMATORS = tuple(STANDS_IN_FOR)  # Mitsuba's integrators ours mirror: path, direct, volpath, ..., prb
+# Those a wrapper may hold (a wrapper calls a sampling integrator's `sample`; ptracer and prb have other ones).
+WRAPPED_ESTIMATORS = tuple(e for e in ESTIMATORS if sampling(e))
 
 
 def _plugin(cls: str) -> str:
@@ -132,7 +135,7 @@ def _xml_wrapper(el, defaults: dict) -> tuple[Wrapper | None, dict]:
     if len(inner) != 1:
         return None, {}
     leaf = substituted(inner[0].get("type"), defaults)
-    if leaf in ESTIMATORS:
+    if leaf in WRAPPED_ESTIMATORS:
         return Wrapper(kind, tuple(props), leaf=leaf), _xml_values(inner[0], defaults)
     nested, path = _xml_wrapper(inner[0], defaults)
     return (None, {}) if nested is None else (Wrapper(kind, tuple(props), nested, leaf=nested.leaf), path)
@@ -251,6 +254,9 @@ def path_settings(mi, scene, as_path: bool = False, scene_path=None, params: dic
     inner = inner_integrator_text(integ)
     keys = ("emitter_samples", "bsdf_samples") if estimator == "direct" else ("max_depth", "rr_depth")
     props = {k: v for k in keys if (v := _int_setting(inner, k)) is not None}
+    for k in keys:  # (prbvolpath's to_string leaves rr_depth out)
+        if k not in props and k in inner_xml:
+            props[k] = signed_depth(int(inner_xml[k]))
     if (own or name == "volpath") and hasattr(integ, "hide_emitters"):
         props["hide_emitters"] = bool(integ.hide_emitters)
     elif "hide_emitters" in inner_xml:  # (an adjoint integrator, or inside a wrapper: only the XML has it)

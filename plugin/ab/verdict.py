@@ -14,10 +14,10 @@ from layerbvh_mitsuba.runtime.stats import RenderStats
 
 # Seeds of the statistical step's two renders: apart, so stock's and ours' samples are independent.
 STOCK_SEED, OURS_SEED = 1000, 5000
-# An adjoint integrator (ptracer) splats its light paths anywhere on the film, so a pixel's samples
-# cannot be read one by one: its moments come from this many independent renders, each a sample of
-# the pixel's mean.
-ADJOINT_RENDERS = 16
+# Where a pixel's samples cannot be read one by one, its moments come from this many independent
+# renders, each a sample of the pixel's mean: an adjoint integrator (ptracer) splats its light
+# paths anywhere on the film, and a gradient image (ab/gradient.py) is only what a render returns.
+MOMENT_RENDERS = 16
 
 
 @dataclass
@@ -99,7 +99,7 @@ def load_modified(mi, scene_path, res, params: dict | None, modify):
 
 def pixel_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarray, np.ndarray, int]:
     """Per-pixel mean, the variance of one sample, and the samples per pixel: for an adjoint
-    integrator from ADJOINT_RENDERS renders of spp / ADJOINT_RENDERS each (`_render_moments`),
+    integrator from MOMENT_RENDERS renders of spp / MOMENT_RENDERS each (`_render_moments`),
     else of `integrator`'s estimate over `spp` samples per pixel,
     from one call of its `sample` on all of them: camera rays through uniform positions
     in each pixel (a box filter) from the scene's first sensor, with an independent sampler
@@ -108,6 +108,7 @@ def pixel_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarra
     go through this same estimator, so it compares the integrators, not two films."""
     if isinstance(integrator, mi.AdjointIntegrator):
         return _render_moments(mi, scene, integrator, spp, seed)
+    differentiable = isinstance(integrator, mi.CppADIntegrator)  # (prb and its kin: `sample` takes an AD mode first)
     sensor = scene.sensors()[0]
     w, h = (int(x) for x in sensor.film().crop_size())
     n = w * h * spp
@@ -116,7 +117,11 @@ def pixel_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarra
     pixel = dr.arange(mi.UInt32, n) // spp
     pos = mi.Vector2f(mi.Float(pixel % w), mi.Float(pixel // w)) + sampler.next_2d()
     ray, weight = sensor.sample_ray(0.0, sampler.next_1d(), pos / mi.Vector2f(w, h), sampler.next_2d())
-    L, _, _ = integrator.sample(scene, sampler, ray, sensor_medium(sensor), True)  # (volpath: a camera in a medium)
+    if differentiable:
+        with dr.suspend_grad():
+            L = integrator.sample(dr.ADMode.Primal, scene, sampler, ray, None, None, mi.Bool(True))[0]
+    else:
+        L, _, _ = integrator.sample(scene, sampler, ray, sensor_medium(sensor), True)  # (volpath: a camera in a medium)
     value = weight * L
     dr.eval(value)
     v = np.stack([np.asarray(value[c], np.float64) for c in range(3)], -1).reshape(h, w, spp, 3)
@@ -124,13 +129,13 @@ def pixel_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarra
 
 
 def _render_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """Per-pixel mean and variance over ADJOINT_RENDERS independent renders (seeds `seed` x
-    ADJOINT_RENDERS + r) of spp / ADJOINT_RENDERS samples per pixel each; each render's pixel is
+    """Per-pixel mean and variance over MOMENT_RENDERS independent renders (seeds `seed` x
+    MOMENT_RENDERS + r) of spp / MOMENT_RENDERS samples per pixel each; each render's pixel is
     one sample of its mean."""
-    per = max(1, spp // ADJOINT_RENDERS)
-    v = np.stack([np.array(mi.render(scene, integrator=integrator, spp=per, seed=seed * ADJOINT_RENDERS + r),
-                           np.float64)[..., :3] for r in range(ADJOINT_RENDERS)])
-    return v.mean(0), v.var(0, ddof=1), ADJOINT_RENDERS
+    per = max(1, spp // MOMENT_RENDERS)
+    v = np.stack([np.array(mi.render(scene, integrator=integrator, spp=per, seed=seed * MOMENT_RENDERS + r),
+                           np.float64)[..., :3] for r in range(MOMENT_RENDERS)])
+    return v.mean(0), v.var(0, ddof=1), MOMENT_RENDERS
 
 
 def independent_seed_test(mi, scene_path, res: tuple[int, int], spp: int, stock: dict, ours: dict,

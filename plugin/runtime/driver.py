@@ -285,19 +285,34 @@ class LayerBVHIntegrator:
         self._finish(state, start, megakernel)
         return out
 
-    @instances_held()
-    def sample(self, scene, sampler, ray, medium=None, active=True):
-        """A sampling estimator's render: every lane's camera ray `ray` (Mitsuba's SamplingIntegrator)."""
-        def prepass(sampler, k, tracing):  # (on the pass's first k camera rays)
+    def _camera_prepass(self, scene, ray):
+        """auto's pre-pass of an estimator that starts at camera rays: on the pass's first k of `ray`."""
+        def prepass(sampler, k, tracing):
             idx = dr.arange(mi.UInt32, k)
             take = (lambda x: x if dr.width(x) <= 1 else dr.gather(type(x), x, idx))
             cam = mi.Ray3f(take(ray.o), take(ray.d), take(ray.maxt), take(ray.time), take(ray.wavelengths))
             self.estimator.prepass(scene, sampler, cam, tracing)
+        return prepass
+
+    @instances_held()
+    def sample(self, scene, sampler, ray, medium=None, active=True):
+        """A sampling estimator's render: every lane's camera ray `ray` (Mitsuba's SamplingIntegrator)."""
         def run(tracing):
             lanes = mi.Bool(active) & dr.full(mi.Bool, True, dr.width(ray.o))
             return self.estimator.sample(scene, sampler, mi.Ray3f(ray), medium, lanes, tracing)
-        L, valid = self._render(scene, dr.width(ray.o), prepass, run)
+        L, valid = self._render(scene, dr.width(ray.o), self._camera_prepass(scene, ray), run)
         return L, valid, []
+
+    @instances_held()
+    def sample_differentiable(self, mode, scene, sampler, ray, δL=None, state_in=None, active=True, **kwargs):
+        """A differentiable estimator's pass (Mitsuba's RBIntegrator: registry.integrator_class
+        makes this the class's `sample`): every lane's camera ray `ray` in AD `mode` (primal;
+        forward or backward, replaying the primal pass's paths from its radiance `state_in`).
+        Returns (L or δL, valid, aovs, L), as ADIntegrator.sample does."""
+        def run(tracing):
+            lanes = mi.Bool(active) & dr.full(mi.Bool, True, dr.width(ray.o))
+            return self.estimator.sample(mode, scene, sampler, mi.Ray3f(ray), δL, state_in, lanes, tracing)
+        return self._render(scene, dr.width(ray.o), self._camera_prepass(scene, ray), run)
 
     @instances_held()
     def sample_adjoint(self, scene, sensor, sampler, block, sample_scale):

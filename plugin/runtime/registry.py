@@ -1,4 +1,4 @@
-"""Our integrators registered with Mitsuba, once per JIT variant: `layerbvh` (path), `layerbvh_direct`, `layerbvh_volpath`, `layerbvh_volpathmis`, `layerbvh_depth` and `layerbvh_ptracer`, each the render driver given one estimator."""
+"""Our integrators registered with Mitsuba, once per JIT variant: `layerbvh` (path), `layerbvh_direct`, `layerbvh_volpath`, `layerbvh_volpathmis`, `layerbvh_depth`, `layerbvh_ptracer`, `layerbvh_prb`, `layerbvh_prb_basic` and `layerbvh_prbvolpath`, each the render driver given one estimator."""
 from __future__ import annotations
 
 import mitsuba as mi
@@ -7,6 +7,9 @@ from layerbvh_mitsuba.runtime.driver import LayerBVHIntegrator
 from layerbvh_mitsuba.runtime.estimators.depth import DepthEstimator
 from layerbvh_mitsuba.runtime.estimators.direct import DirectEstimator
 from layerbvh_mitsuba.runtime.estimators.path import PathEstimator
+from layerbvh_mitsuba.runtime.estimators.prb import PRBEstimator
+from layerbvh_mitsuba.runtime.estimators.prb_basic import BasicPRBEstimator
+from layerbvh_mitsuba.runtime.estimators.prbvolpath import PRBVolPathEstimator
 from layerbvh_mitsuba.runtime.estimators.ptracer import ParticleTracerEstimator
 from layerbvh_mitsuba.runtime.estimators.volpath import VolPathEstimator
 from layerbvh_mitsuba.runtime.estimators.volpathmis import VolPathMISEstimator
@@ -17,7 +20,10 @@ PLUGINS = {"layerbvh": ("LayerBVHIntegrator", PathEstimator),
            "layerbvh_volpath": ("LayerBVHVolPathIntegrator", VolPathEstimator),
            "layerbvh_volpathmis": ("LayerBVHVolPathMISIntegrator", VolPathMISEstimator),
            "layerbvh_depth": ("LayerBVHDepthIntegrator", DepthEstimator),
-           "layerbvh_ptracer": ("LayerBVHParticleTracerIntegrator", ParticleTracerEstimator)}
+           "layerbvh_ptracer": ("LayerBVHParticleTracerIntegrator", ParticleTracerEstimator),
+           "layerbvh_prb": ("LayerBVHPRBIntegrator", PRBEstimator),
+           "layerbvh_prb_basic": ("LayerBVHBasicPRBIntegrator", BasicPRBEstimator),
+           "layerbvh_prbvolpath": ("LayerBVHPRBVolPathIntegrator", PRBVolPathEstimator)}
 # Mitsuba's integrators ours stand in for, by plugin name (each estimator names the one it mirrors).
 STANDS_IN_FOR = {estimator.PLUGIN: plugin for plugin, (_, estimator) in PLUGINS.items()}
 
@@ -31,6 +37,21 @@ def handles_media(estimator: str) -> bool:
     return PLUGINS[STANDS_IN_FOR[estimator]][1].VOLUMETRIC
 
 
+def sampling(estimator: str) -> bool:
+    """Whether ours standing in for Mitsuba's `estimator` is a plain sampling integrator (one that
+    Mitsuba's aov, moment and stokes wrappers can run): not adjoint, not differentiable."""
+    cls = PLUGINS[STANDS_IN_FOR[estimator]][1]
+    return not getattr(cls, "ADJOINT", False) and not getattr(cls, "DIFFERENTIABLE", False)
+
+
+def differentiation(estimator: str) -> tuple[bool, bool]:
+    """(whether ours standing in for Mitsuba's `estimator` renders derivatives, whether in
+    forward mode too); (False, False) for an integrator we do not mirror."""
+    cls = PLUGINS[STANDS_IN_FOR[estimator]][1] if estimator in STANDS_IN_FOR else None
+    diff = bool(getattr(cls, "DIFFERENTIABLE", False))
+    return diff, diff and bool(getattr(cls, "FORWARD", True))
+
+
 def is_jit_variant(variant: str | None) -> bool:
     return bool(variant) and variant.split("_", 1)[0] in ("llvm", "cuda")
 
@@ -38,7 +59,9 @@ def is_jit_variant(variant: str | None) -> bool:
 def integrator_class(plugin: str = "layerbvh") -> type:
     """Our integrator `plugin` as a class of the active variant: that variant's
     mi.SamplingIntegrator (mi.AdjointIntegrator for an estimator that is ADJOINT, whose `sample`
-    is then the driver's `sample_adjoint`) with the driver's methods (Mitsuba's base classes exist
+    is then the driver's `sample_adjoint`; Mitsuba's Python RBIntegrator for one that is
+    DIFFERENTIABLE, whose `sample` is `sample_differentiable` and whose render, render_forward
+    and render_backward are Mitsuba's) with the driver's methods (Mitsuba's base classes exist
     once per variant, and nanobind classes take a single base, so the driver cannot be a second
     base), its estimator as `ESTIMATOR`; `_base` is that base class."""
     variant = mi.variant()
@@ -48,9 +71,14 @@ def integrator_class(plugin: str = "layerbvh") -> type:
     cls = _classes.get((plugin, variant))
     if cls is None:
         name, estimator = PLUGINS[plugin]
-        adjoint = getattr(estimator, "ADJOINT", False)
-        base = mi.AdjointIntegrator if adjoint else mi.SamplingIntegrator
-        methods = {**_DRIVER, "sample": _DRIVER["sample_adjoint"]} if adjoint else _DRIVER
+        if getattr(estimator, "ADJOINT", False):
+            base, methods = mi.AdjointIntegrator, {**_DRIVER, "sample": _DRIVER["sample_adjoint"]}
+        elif getattr(estimator, "DIFFERENTIABLE", False):
+            # (Mitsuba reloads its Python integrators per variant: this variant's RBIntegrator.)
+            from mitsuba.ad.integrators.common import RBIntegrator  # local: exists once a JIT variant is set
+            base, methods = RBIntegrator, {**_DRIVER, "sample": _DRIVER["sample_differentiable"]}
+        else:
+            base, methods = mi.SamplingIntegrator, _DRIVER
         cls = _classes[(plugin, variant)] = type(name, (base,), {**methods, "_base": base, "ESTIMATOR": estimator,
                                                                  "PLUGIN": plugin})
     return cls

@@ -61,7 +61,7 @@ def test_ptracer_layer_path_ran(scene_as, layer_path_ran):
 
 def test_ptracer_statistical_step_catches_a_2_percent_albedo_change(scene_as):
     """Negative control of the verdict's second step for an adjoint integrator (moments from
-    independent renders, verdict.ADJOINT_RENDERS): ours with the floor 2% brighter must fail,
+    independent renders, verdict.MOMENT_RENDERS): ours with the floor 2% brighter must fail,
     and the same configuration passes unchanged."""
     def brighter_floor(params):
         key = "FloorBSDF.brdf_0.reflectance.value"

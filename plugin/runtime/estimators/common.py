@@ -1,4 +1,4 @@
-"""What every estimator uses and none owns: the render's tracing context, the loop in either mode, the power heuristic, stock's depth properties and hide_emitters' walk past area emitters."""
+"""What every estimator uses and none owns: the render's tracing context, the loop in either mode, the power heuristic, stock's depth properties, an emitter sample with our visibility test, and hide_emitters' walk past area emitters."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -71,6 +71,36 @@ def read_depths(props: mi.Properties) -> tuple[int, int, bool]:
     max_depth, rr_depth = props.get("max_depth", -1), props.get("rr_depth", 5)
     check_depths(max_depth, rr_depth)
     return max_depth, rr_depth, props.get("hide_emitters", False)
+
+
+# Mitsuba's differentiable integrators (ADIntegrator, common.py) default to 6 vertices, not unlimited.
+AD_MAX_DEPTH = 6
+
+
+def read_ad_depths(props: mi.Properties) -> tuple[int, int, bool]:
+    """`read_depths` with the differentiable integrators' default max_depth (AD_MAX_DEPTH)."""
+    max_depth, rr_depth = props.get("max_depth", AD_MAX_DEPTH), props.get("rr_depth", 5)
+    check_depths(max_depth, rr_depth)
+    return max_depth, rr_depth, props.get("hide_emitters", False)
+
+
+def vertex_limit(max_depth: int) -> int:
+    """max_depth as the differentiable integrators compare it with a UInt32 depth: -1 (infinite)
+    is 2^32 - 1 vertices."""
+    return 0xFFFFFFFF if max_depth < 0 else max_depth
+
+
+def visible_emitter_sample(scene, queries: RayQueries, si, sample, active, test: bool = True):
+    """`scene.sample_emitter_direction(si, sample, True, active)` with the visibility test ours:
+    as Mitsuba's Scene does it, a sample whose pdf is not 0 is tested, and where it is occluded
+    both its weight and its pdf become 0. `test` false leaves the test out (a scene without
+    emitters: every pdf is 0). Returns (ds, weight)."""
+    ds, weight = scene.sample_emitter_direction(si, sample, False, active)
+    if test:
+        occluded = queries.occluded(si.spawn_ray_to(ds.p), mi.Bool(active) & (ds.pdf != 0))
+        weight = dr.select(occluded, 0, weight)
+        ds.pdf = dr.select(occluded, 0, ds.pdf)
+    return ds, weight
 
 
 def path_kinds(max_depth: int, shadow_rays: bool, shadow_any_hit: bool = True) -> Kinds:
