@@ -21,6 +21,7 @@ INTEGRATOR_PLUGINS = {
     "DirectIntegrator": "direct", "AOVIntegrator": "aov", "MomentIntegrator": "moment",
     "ParticleTracerIntegrator": "ptracer", "DepthIntegrator": "depth", "StokesIntegrator": "stokes",
     "PRBIntegrator": "prb", "BasicPRBIntegrator": "prb_basic", "PRBVolpathIntegrator": "prbvolpath",
+    "PathProjectiveIntegrator": "prb_projective",
     "LayerBVHIntegrator": "layerbvh",
 }
 WRAPPERS = ("aov", "moment", "stokes")  # integrators that run others and add channels

@@ -139,18 +139,20 @@ def scene_path_settings(tmp: Path) -> Outcome:
                    f"{rep.get('metrics', {}).get('frac_pixels_over_1e-3')}")
 
 
-@case("non_path_integrator", "compare a scene whose integrator is prb (one we do not mirror), with and without --as-path",
-      "refused in one line naming prb; with --as-path both sides render path with prb's max_depth, "
+@case("non_path_integrator", "compare a scene whose integrator is prb_projective (one we do not mirror), with and "
+      "without --as-path",
+      "refused in one line naming prb_projective; with --as-path both sides render path with its max_depth, "
       "and report.json and index.html say so")
 def non_path_integrator(tmp: Path) -> Outcome:
-    scene = scene_file(tmp, "prb", f"""<integrator type="prb"><integer name="max_depth" value="4"/></integrator>
+    scene = scene_file(tmp, "prb_projective", f"""<integrator type="prb_projective"><integer name="max_depth" value="4"/>
+  </integrator>
   {LIT_QUAD}""")
     refused = layerbvh("compare", scene, "--out", tmp / "cmp")
-    ok1, line = one_line(refused, 2, "prb", "--as-path")
+    ok1, line = one_line(refused, 2, "prb_projective", "--as-path")
     ok1 &= not (tmp / "cmp").exists()
     r = layerbvh("compare", scene, "--out", tmp / "cmp", "--as-path")
     rep = report(tmp / "cmp") if r.code == 0 else {}
-    ok2 = (rep.get("scene_integrator") == "prb" and rep.get("compared_as") == "path (--as-path)"
+    ok2 = (rep.get("scene_integrator") == "prb_projective" and rep.get("compared_as") == "path (--as-path)"
            and rep.get("integrator", {}).get("max_depth") == 4
            and "--as-path" in (tmp / "cmp" / "index.html").read_text())
     return Outcome("non_path_integrator", ok1 and ok2,
