@@ -322,6 +322,24 @@ class LayerBVHIntegrator:
                      lambda sampler, k, tracing: self.estimator.prepass(scene, sensor, sampler, tracing),
                      lambda tracing: self.estimator.sample(scene, sensor, sampler, block, sample_scale, tracing))
 
+    # A differentiable render (Mitsuba's RBIntegrator, registry.integrator_class) calls `sample`
+    # twice, primal then replaying, and records both into one kernel with the splatting around
+    # them: the collector stays paused across the whole of it (held_instances), not only inside
+    # each `sample`. Measured: prb's gradient test after two other renders in one process
+    # aborted ("Fatal Python error: Aborted") with the pause on `sample` alone.
+    # (These are Mitsuba's Python methods, so wrapping them nests no SIGINT handler.)
+    def render_differentiable(self, *args, **kwargs):
+        with instances_held():
+            return self._base.render(self, *args, **kwargs)
+
+    def render_forward_held(self, *args, **kwargs):
+        with instances_held():
+            return self._base.render_forward(self, *args, **kwargs)
+
+    def render_backward_held(self, *args, **kwargs):
+        with instances_held():
+            return self._base.render_backward(self, *args, **kwargs)
+
     def _queries(self, scene, tracer: SceneTracer | None, megakernel: bool) -> RayQueries:
         """Who answers this render's queries: Embree (the control), our traversal inline (the
         megakernel) or between kernels, and, when recording, a recorder in front."""

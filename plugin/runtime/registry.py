@@ -76,7 +76,10 @@ def integrator_class(plugin: str = "layerbvh") -> type:
         elif getattr(estimator, "DIFFERENTIABLE", False):
             # (Mitsuba reloads its Python integrators per variant: this variant's RBIntegrator.)
             from mitsuba.ad.integrators.common import RBIntegrator  # local: exists once a JIT variant is set
-            base, methods = RBIntegrator, {**_DRIVER, "sample": _DRIVER["sample_differentiable"]}
+            base, methods = RBIntegrator, {**_DRIVER, "sample": _DRIVER["sample_differentiable"],
+                                           "render": _DRIVER["render_differentiable"],
+                                           "render_forward": _DRIVER["render_forward_held"],
+                                           "render_backward": _DRIVER["render_backward_held"]}
         else:
             base, methods = mi.SamplingIntegrator, _DRIVER
         cls = _classes[(plugin, variant)] = type(name, (base,), {**methods, "_base": base, "ESTIMATOR": estimator,
