@@ -316,6 +316,14 @@ MUTATIONS = (
              "                self.sample_emitter(*args, nee_sampler, mode, adj_emitted=contrib, dL=dL)\n",
              "",
              ("tests/runtime/test_prb.py::test_prbvolpath_in_media_same_seed_and_backward",)),
+    Mutation("differentiable_render_not_held", "a differentiable render pauses the collector only inside each "
+             "`sample`, not across Mitsuba's render_forward/render_backward (Dr.Jit then aborts)",
+             "plugin/runtime/registry.py",
+             '                                           "render_forward": _DRIVER["render_forward_held"],\n                                           "render_backward": _DRIVER["render_backward_held"]}\n',
+             "}\n",
+             ("tests/runtime/test_prb.py::test_gradients_same_seed_as_stock[prb-cbox-layer_sorted]",
+              "tests/runtime/test_prb.py::test_primal_same_seed_as_stock[prb-bunny_box-per_ray]",
+              "tests/runtime/test_prb.py::test_gradients_same_seed_as_stock[prb-bunny_box-per_ray]")),
     Mutation("cachegrind_disturbed_run_tabulated", "the valgrind check tabulates a run whose N-ray region counted "
              "more events than its 2N-ray one (negative misses per ray)",
              "scripts/check_model_cachegrind.py",
