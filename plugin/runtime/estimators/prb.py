@@ -6,30 +6,23 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from layerbvh_mitsuba.runtime.estimators.common import (Kinds, Tracing, loop, mis_weight, read_ad_depths,
-                                                        skip_area_emitters, vertex_limit, visible_emitter_sample)
-from layerbvh_mitsuba.runtime.estimators.replay import area_jacobian, differential, propagate, reattached_reflection
+from layerbvh_mitsuba.runtime.estimators.common import (Kinds, Tracing, loop, mis_weight, read_ad_depths, vertex_limit,
+                                                        visible_emitter_sample)
+from layerbvh_mitsuba.runtime.estimators.replay import (PathReplay, area_jacobian, camera_hits, differential, propagate,
+                                                        reattached_reflection)
 from layerbvh_mitsuba.runtime.features import Features
 from layerbvh_mitsuba.runtime.record import bounce_kind
 
 
 @dataclass
-class ReplayState:
-    """What a replayed path carries from one vertex to the next: the loop's state."""
+class ReplayState(PathReplay):
+    """What a replayed prb path carries besides PathReplay's: the previous vertex's BSDF sample
+    (for the MIS weight of emission it finds) and the index of refraction (Russian roulette)."""
 
-    ray: mi.Ray3f                          # the ray that found `pi`
-    pi: mi.PreliminaryIntersection3f       # the vertex to shade next
-    ray_prev: mi.Ray3f                     # the ray that found the previous vertex
-    pi_prev: mi.PreliminaryIntersection3f  # (its motion turns this vertex's wi)
-    si_prev: mi.SurfaceInteraction3f       # the previous vertex, detached (MIS of emission found by the BSDF)
+    si_prev: mi.SurfaceInteraction3f       # the previous vertex, detached
     bsdf_pdf_prev: mi.Float
     bsdf_delta_prev: mi.Bool
-    active: mi.Bool
-    depth: mi.UInt32
-    L: mi.Spectrum                         # radiance: summed (primal), or what remains of it (replay)
-    dL: mi.Spectrum                        # the adjoint radiance (backward) or the derivative so far (forward)
-    beta: mi.Spectrum                      # throughput
-    eta: mi.Float                          # relative index of refraction so far (Russian roulette)
+    eta: mi.Float                          # relative index of refraction so far
 
 
 def _textured_area_emitters(scene) -> bool:
@@ -82,7 +75,7 @@ class PRBEstimator:
     def sample(self, mode, scene, sampler, ray: mi.Ray3f, dL, state_in, active, tr: Tracing):
         """(L or dL, valid, aovs, L) of the paths starting with camera rays `ray`, in AD `mode`
         (Mitsuba's ADIntegrator.sample)."""
-        state = self.start(mode, scene, ray, self._camera_hits(scene, ray, active, tr), active, dL, state_in)
+        state = self.start(mode, ray, camera_hits(tr, ray, active, self.hide_emitters), active, dL, state_in)
         textured = _textured_area_emitters(scene)
         sampler, state = loop((sampler, state), cond=lambda sampler, s: s.active,
                               body=lambda sampler, s: self.vertex(mode, scene, sampler, tr, s, textured),
@@ -93,23 +86,15 @@ class PRBEstimator:
         """auto's pre-pass on camera rays `cam`: their hits and one primal vertex."""
         active = dr.full(mi.Bool, True, dr.width(cam.o))
         mode = dr.ADMode.Primal
-        self.vertex(mode, scene, sampler, tr, self.start(mode, scene, cam, tr.queries.intersect(cam, active), active),
-                    False)
+        self.vertex(mode, scene, sampler, tr, self.start(mode, cam, tr.queries.intersect(cam, active), active), False)
 
-    def _camera_hits(self, scene, ray, active, tr: Tracing):
-        pi = tr.queries.intersect(ray, active, hint="camera")
-        return skip_area_emitters(tr.queries, ray, pi, active, tr.megakernel) if self.hide_emitters else pi
-
-    def start(self, mode, scene, ray, pi, active, dL=None, state_in=None) -> ReplayState:
+    @staticmethod
+    def start(mode, ray, pi, active, dL=None, state_in=None) -> ReplayState:
         """The state of paths whose camera rays `ray` found `pi` (`state_in`: the primal pass's L)."""
         n = dr.width(active)
-        return ReplayState(
-            ray=mi.Ray3f(ray), pi=pi, ray_prev=mi.Ray3f(ray), pi_prev=dr.zeros(mi.PreliminaryIntersection3f, n),
-            si_prev=dr.zeros(mi.SurfaceInteraction3f, n), bsdf_pdf_prev=dr.full(mi.Float, 1, n),
-            bsdf_delta_prev=dr.full(mi.Bool, True, n), active=mi.Bool(active), depth=dr.zeros(mi.UInt32, n),
-            L=dr.zeros(mi.Spectrum, n) if not differential(mode) else mi.Spectrum(state_in),
-            dL=dr.zeros(mi.Spectrum, n) if dL is None else mi.Spectrum(dL),
-            beta=dr.full(mi.Spectrum, 1, n), eta=dr.full(mi.Float, 1, n))
+        return ReplayState.begin(mode, ray, pi, active, dL, state_in, si_prev=dr.zeros(mi.SurfaceInteraction3f, n),
+                                 bsdf_pdf_prev=dr.full(mi.Float, 1, n), bsdf_delta_prev=dr.full(mi.Bool, True, n),
+                                 eta=dr.full(mi.Float, 1, n))
 
     def vertex(self, mode, scene, sampler, tr: Tracing, s: ReplayState, textured: bool):
         """One loop iteration: shade vertex `s.pi` (and, replaying, push its derivatives), then find the next one."""

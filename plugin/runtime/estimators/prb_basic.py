@@ -1,31 +1,14 @@
 """Stock `prb_basic`'s estimator (path replay backpropagation without emitter sampling, MIS or Russian roulette), every ray query ours. Follows mitsuba/python/ad/integrators/prb_basic.py @ v3.9.1."""
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import drjit as dr
 import mitsuba as mi
 
-from layerbvh_mitsuba.runtime.estimators.common import (Kinds, Tracing, loop, read_ad_depths, skip_area_emitters,
-                                                        vertex_limit)
-from layerbvh_mitsuba.runtime.estimators.replay import differential, propagate, reattached_reflection
+from layerbvh_mitsuba.runtime.estimators.common import Kinds, Tracing, loop, read_ad_depths, vertex_limit
+from layerbvh_mitsuba.runtime.estimators.replay import (PathReplay, camera_hits, differential, propagate,
+                                                        reattached_reflection)
 from layerbvh_mitsuba.runtime.features import Features
 from layerbvh_mitsuba.runtime.record import bounce_kind
-
-
-@dataclass
-class BasicReplayState:
-    """What a replayed path carries from one vertex to the next: the loop's state."""
-
-    ray: mi.Ray3f                          # the ray that found `pi`
-    pi: mi.PreliminaryIntersection3f       # the vertex to shade next
-    ray_prev: mi.Ray3f                     # the ray that found the previous vertex
-    pi_prev: mi.PreliminaryIntersection3f  # (its motion turns this vertex's wi)
-    active: mi.Bool
-    depth: mi.UInt32
-    L: mi.Spectrum                         # radiance: summed (primal), or what remains of it (replay)
-    dL: mi.Spectrum                        # the adjoint radiance (backward) or the derivative so far (forward)
-    beta: mi.Spectrum                      # throughput
 
 
 class BasicPRBEstimator:
@@ -61,10 +44,7 @@ class BasicPRBEstimator:
 
     def sample(self, mode, scene, sampler, ray: mi.Ray3f, dL, state_in, active, tr: Tracing):
         """(L or dL, valid, aovs, L) of the paths starting with camera rays `ray`, in AD `mode`."""
-        pi = tr.queries.intersect(ray, active, hint="camera")
-        if self.hide_emitters:
-            pi = skip_area_emitters(tr.queries, ray, pi, active, tr.megakernel)
-        state = self.start(mode, ray, pi, active, dL, state_in)
+        state = PathReplay.begin(mode, ray, camera_hits(tr, ray, active, self.hide_emitters), active, dL, state_in)
         sampler, state = loop((sampler, state), cond=lambda sampler, s: s.active,
                               body=lambda sampler, s: self.vertex(mode, scene, sampler, tr, s),
                               symbolic=tr.megakernel, label=f"layerbvh prb_basic ({mode.name})")
@@ -74,17 +54,9 @@ class BasicPRBEstimator:
         """auto's pre-pass on camera rays `cam`: their hits and one primal vertex."""
         active = dr.full(mi.Bool, True, dr.width(cam.o))
         mode = dr.ADMode.Primal
-        self.vertex(mode, scene, sampler, tr, self.start(mode, cam, tr.queries.intersect(cam, active), active))
+        self.vertex(mode, scene, sampler, tr, PathReplay.begin(mode, cam, tr.queries.intersect(cam, active), active))
 
-    def start(self, mode, ray, pi, active, dL=None, state_in=None) -> BasicReplayState:
-        n = dr.width(active)
-        return BasicReplayState(
-            ray=mi.Ray3f(ray), pi=pi, ray_prev=mi.Ray3f(ray), pi_prev=dr.zeros(mi.PreliminaryIntersection3f, n),
-            active=mi.Bool(active), depth=dr.zeros(mi.UInt32, n),
-            L=dr.zeros(mi.Spectrum, n) if not differential(mode) else mi.Spectrum(state_in),
-            dL=dr.zeros(mi.Spectrum, n) if dL is None else mi.Spectrum(dL), beta=dr.full(mi.Spectrum, 1, n))
-
-    def vertex(self, mode, scene, sampler, tr: Tracing, s: BasicReplayState):
+    def vertex(self, mode, scene, sampler, tr: Tracing, s: PathReplay):
         """One loop iteration: shade vertex `s.pi` (and, replaying, push its derivatives), then find the next one."""
         tr.iteration()
         replay = differential(mode)
@@ -116,8 +88,8 @@ class BasicPRBEstimator:
             with dr.resume_grad():
                 dL = propagate(mode, dL, Le + Lr, s.active, tr.megakernel)
 
-        new = BasicReplayState(ray=ray_next, pi=pi_next, ray_prev=s.ray, pi_prev=s.pi, active=active_next,
-                               depth=dr.select(si.is_valid(), s.depth + 1, s.depth), L=L, dL=dL, beta=beta)
+        new = PathReplay(ray=ray_next, pi=pi_next, ray_prev=s.ray, pi_prev=s.pi, active=active_next,
+                         depth=dr.select(si.is_valid(), s.depth + 1, s.depth), L=L, dL=dL, beta=beta)
         return sampler, dr.select(s.active, new, s)
 
     def describe(self) -> str:

@@ -1,8 +1,12 @@
 """What the path-replay estimators (prb, prb_basic) share: the derivative half of a vertex, where the detached radiance a path carries is re-attached to the scene's parameters and pushed forward or back (Vicini et al. 2021, "Path Replay Backpropagation", sec. 4)."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import drjit as dr
 import mitsuba as mi
+
+from layerbvh_mitsuba.runtime.estimators.common import Tracing, skip_area_emitters
 
 
 def area_jacobian(o, p, n, active):
@@ -15,6 +19,39 @@ def area_jacobian(o, p, n, active):
 def differential(mode) -> bool:
     """Whether `mode` (a dr.ADMode) replays a path for its derivatives (not the primal image)."""
     return mode != dr.ADMode.Primal
+
+
+@dataclass
+class PathReplay:
+    """What a replayed path carries from one vertex to the next (prb_basic's loop state; prb's
+    adds to it)."""
+
+    ray: mi.Ray3f                          # the ray that found `pi`
+    pi: mi.PreliminaryIntersection3f       # the vertex to shade next
+    ray_prev: mi.Ray3f                     # the ray that found the previous vertex
+    pi_prev: mi.PreliminaryIntersection3f  # (its motion turns this vertex's wi)
+    active: mi.Bool
+    depth: mi.UInt32
+    L: mi.Spectrum                         # radiance: summed (primal), or what remains of it (replay)
+    dL: mi.Spectrum                        # the adjoint radiance (backward) or the derivative so far (forward)
+    beta: mi.Spectrum                      # throughput
+
+    @classmethod
+    def begin(cls, mode, ray, pi, active, dL=None, state_in=None, **more):
+        """The state of paths whose camera rays `ray` found `pi` (`state_in`: the primal pass's
+        L; `more`: a subclass's own fields)."""
+        n = dr.width(active)
+        return cls(ray=mi.Ray3f(ray), pi=pi, ray_prev=mi.Ray3f(ray), pi_prev=dr.zeros(mi.PreliminaryIntersection3f, n),
+                   active=mi.Bool(active), depth=dr.zeros(mi.UInt32, n),
+                   L=dr.zeros(mi.Spectrum, n) if not differential(mode) else mi.Spectrum(state_in),
+                   dL=dr.zeros(mi.Spectrum, n) if dL is None else mi.Spectrum(dL), beta=dr.full(mi.Spectrum, 1, n),
+                   **more)
+
+
+def camera_hits(tr: Tracing, ray, active, hide_emitters: bool):
+    """The camera rays' first vertices (past area emitters with hide_emitters, as prb)."""
+    pi = tr.queries.intersect(ray, active, hint="camera")
+    return skip_area_emitters(tr.queries, ray, pi, active, tr.megakernel) if hide_emitters else pi
 
 
 def reattached_reflection(L, si, bsdf, ray_next, pi_next, active_next, flags):
