@@ -23,8 +23,8 @@ from layerbvh_mitsuba.ab.compare import (
     ours_props,
     wrapped,
 )
-from layerbvh_mitsuba.ab.render import (UserError, load_integrator, load_scene, render_passes, scene_spp, use_variant,
-    write_exr)
+from layerbvh_mitsuba.ab.render import (UserError, load_integrator, load_scene, render_channels, render_passes,
+    scene_spp, use_variant, write_exr)
 from layerbvh_mitsuba.ab.scene_integrator import SUPPORTED, path_settings
 from layerbvh_mitsuba.ab.report import REPORT_MARKER, heatmap_png, write_comparison
 from layerbvh_mitsuba.runtime.scene_geometry import UnsupportedShapeError
@@ -33,7 +33,7 @@ from layerbvh_mitsuba.tools import converge
 from layerbvh_mitsuba.tools.bench import locality
 from layerbvh_mitsuba.tools.sweep import grid as sweep
 
-AS_PATH_HELP = (f"the scene's integrator is none of {SUPPORTED} (stokes, the projective integrators, ...): render both sides with path "
+AS_PATH_HELP = (f"the scene's integrator is none of {SUPPORTED} (the projective integrators, volprim_rf_basic, ...): render both sides with path "
                 "anyway, with the settings read from it where it has them (without this, such a scene is refused)")
 
 
@@ -161,10 +161,11 @@ def cmd_render(mi, args) -> int:
     integ = load_integrator(mi, ours_props(s, path))
     check_memory_for(scene, spp, integ)  # builds the BVH (and refuses unsupported shapes) first
     # In the scene's aov/moment wrapper where it has one: the EXR holds the wrapper's channels too.
-    img, secs = render_passes(mi, scene, wrapped(mi, path, integ), spp, args.seed, "layerbvh", not args.no_progress)
+    rendered = wrapped(mi, path, integ)
+    img, secs = render_passes(mi, scene, rendered, spp, args.seed, "layerbvh", not args.no_progress)
     if not np.isfinite(img).all():
         raise UserError(f"render produced {int((~np.isfinite(img)).any(-1).sum())} NaN/Inf pixels; nothing written")
-    write_exr(args.output, img)
+    write_exr(args.output, img, render_channels(rendered, img.shape[-1] if img.ndim == 3 else 1))
     st = integ.last_stats
     if args.heatmap:
         counted = load_integrator(mi, ours_props(s, path, stats=True))

@@ -339,9 +339,9 @@ MUTATIONS = (
     Mutation("volpath_albedo_lost", "volpath's real collision in a medium of spectral extinction weighs the "
              "throughput by sigma_s alone (its strategy's real_collision drops the real-collision probability)",
              "plugin/runtime/estimators/volpath.py",
-             "        throughput = dr.select(spectral, w.throughput * mei.sigma_s\n"
-             "                               / dr.mean(mei.sigma_t / mei.combined_extinction, axis=0), w.throughput)\n",
-             "        throughput = dr.select(spectral, w.throughput * mei.sigma_s, w.throughput)\n",
+             "        throughput = dr.select(spectral, _scaled(w.throughput, mei.sigma_s\n"
+             "                               / dr.mean(mei.sigma_t / mei.combined_extinction, axis=0)), w.throughput)\n",
+             "        throughput = dr.select(spectral, _scaled(w.throughput, mei.sigma_s), w.throughput)\n",
              ("tests/runtime/test_media_reference.py::test_ours_passes_mitsubas_reference_test[test_hetero_sigmat]",)),
     Mutation("plugin_imports_the_engine", "the pytest plugin imports the engine (and with it Dr.Jit and numba) when "
              "pytest starts",
@@ -361,6 +361,40 @@ MUTATIONS = (
              '    return {"D1": float(got[2 * n][0].sum() - got[n][0].sum()) / n,',
              '    return {"D1": float(got[2 * n][0].sum() - got[n][0].sum()) / (2 * n),',
              ("tests/tools/test_model_cachegrind.py::test_the_model_misses_what_valgrind_misses_on_the_per_ray_kernel",)),
+    Mutation("polarized_throughput_all_ones", "a path's starting throughput fills every Mueller-matrix entry with 1 "
+             "(dr.full) instead of the identity",
+             "plugin/runtime/estimators/common.py",
+             "    return mi.Spectrum(dr.full(mi.Float, 1, n))\n",
+             "    return dr.full(mi.Spectrum, 1, n)\n",
+             ("tests/runtime/test_polarized.py::test_stokes_around_ours_equals_stock_in_all_four_stokes_components[stokes-per_ray]",)),
+    Mutation("path_bsdf_weight_in_local_frame", "path's BSDF sample weight stays in the BSDF's local Stokes frames "
+             "(no to_world_mueller)",
+             "plugin/runtime/estimators/path.py",
+             "        bsdf_weight = si.to_world_mueller(bsdf_weight, -bsdf_sample.wo, si.wi)\n",
+             "",
+             ("tests/runtime/test_polarized.py::test_stokes_around_ours_equals_stock_in_all_four_stokes_components[stokes-per_ray]",)),
+    Mutation("stokes_wrapper_not_read", "a stokes scene's wrapper is matched against to_string's name, which holds "
+             "nothing of what stokes wraps (the scene is then refused)",
+             "plugin/ab/scene_integrator.py",
+             "    if wrapper is not None and wrapper.loaded_name != name:\n",
+             "    if wrapper is not None and wrapper.name != name:\n",
+             ("tests/runtime/test_polarized.py::test_a_stokes_scene_is_read_as_stokes_around_its_estimator",)),
+    Mutation("stokes_compared_on_rgb_only", "compare judges a stokes render on its RGB alone, as an aov's (S0-S3 "
+             "unjudged)",
+             "plugin/ab/compare.py",
+             '    stokes = path.wrapper is not None and path.wrapper.type == "stokes"\n',
+             "    stokes = False\n",
+             ("tests/runtime/test_polarized.py::test_compare_judges_the_five_stokes_panels",)),
+    Mutation("stokes_statistical_rgb_only", "the independent-seed step of a stokes render tests its RGB alone",
+             "plugin/ab/verdict.py",
+             "    judged = metrics.stokes_panels if _stokes(integrator) else (lambda img: img[..., :3])\n",
+             "    judged = lambda img: img[..., :3]  # noqa: E731\n",
+             ("tests/runtime/test_polarized.py::test_compare_judges_the_five_stokes_panels",)),
+    Mutation("render_exr_channels_unnamed", "`layerbvh render` writes a wrapper's channels unnamed (ch00, ...)",
+             "plugin/cli.py",
+             "    write_exr(args.output, img, render_channels(rendered, img.shape[-1] if img.ndim == 3 else 1))\n",
+             "    write_exr(args.output, img)\n",
+             ("tests/runtime/test_polarized.py::test_render_writes_the_stokes_channels_under_stocks_names",)),
 )
 
 

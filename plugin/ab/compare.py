@@ -288,7 +288,12 @@ def compare(mi, s: CompareSettings, scene=None) -> Comparison:
                                                          s.seed, "statistics pass", s.progress, calibrated=cint))
         counted, counted_time, heatmaps = cint.last_stats, SideTime.of(cr), cint.heatmaps(ours_scene)
 
-    if path.wrapper is not None:  # the wrapper's own channels (AOVs, moments) are its business: RGB is compared
+    film = (stock_img.shape[1], stock_img.shape[0])  # (W, H)
+    stokes = path.wrapper is not None and path.wrapper.type == "stokes"
+    if stokes:  # the polarization is what a stokes render is for: its five RGB images side by side, all judged
+        stock_img, ours_img = _stage(OURS, "render", lambda: (metrics.stokes_panels(stock_img),
+                                                              metrics.stokes_panels(ours_img)))
+    elif path.wrapper is not None:  # the wrapper's own channels (AOVs, moments) are its business: RGB is compared
         stock_img, ours_img = stock_img[..., :3], ours_img[..., :3]
     if stock_img.shape != ours_img.shape:
         raise ComparisonFailed(OURS, "render", ValueError(
@@ -297,10 +302,10 @@ def compare(mi, s: CompareSettings, scene=None) -> Comparison:
     ours_img, bad_ours = _finite(ours_img)
     if s.statistical_step:
         verdict = judge(mi, scene_path, stock_img, ours_img, spp, path.stock_inner(), ours_all, dict(s.params),
-                        s.ours_modify)
+                        s.ours_modify, film, path.integrator if stokes else None)
     else:
         verdict = same_seed_only(stock_img, ours_img)
-    h, w = stock_img.shape[:2]
+    w, h = film
     gradient = None
     if s.grad is not None:
         gradient = _stage(OURS, "render", lambda: compare_gradients(

@@ -38,6 +38,19 @@ def as_rgb(img, name: str = "image") -> np.ndarray:
     return a
 
 
+STOKES_PANELS = ("RGB", "S0", "S1", "S2", "S3")  # a `stokes` render's channels, in threes
+
+
+def stokes_panels(img) -> np.ndarray:
+    """A `stokes` render, (H, W, 15): RGB, then the Stokes vector's S0-S3 each in RGB (Mitsuba's
+    stokes integrator), as its five RGB images side by side, (H, 5W, 3), so that every image metric
+    and test judges S1-S3 (the polarization) as it judges RGB."""
+    a = np.asarray(img)
+    if a.ndim != 3 or a.shape[2] != 3 * len(STOKES_PANELS):
+        raise ValueError(f"a stokes image has {3 * len(STOKES_PANELS)} channels, got shape {a.shape}")
+    return np.concatenate([a[..., 3 * i:3 * i + 3] for i in range(len(STOKES_PANELS))], axis=1)
+
+
 def _pair(ref, test) -> tuple[np.ndarray, np.ndarray]:
     r, t = as_rgb(ref, "ref"), as_rgb(test, "test")
     if r.shape != t.shape:

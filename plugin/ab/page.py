@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from layerbvh_mitsuba.ab.metrics import STOKES_PANELS
+
 # Images up to this many pixels travel inside the page as half floats (hover values, exposure);
 # larger ones are shown from their PNGs (flip and split only), so the page stays a few MB.
 EMBED_MAX_PIXELS = 1 << 20
@@ -303,6 +305,9 @@ def render_page(rep: dict, stock: np.ndarray, ours: np.ndarray, maps: dict, heat
     as_path = ""
     if "--as-path" in str(rep.get("compared_as", "")):
         as_path = f'<p class="warn">Compared as path (--as-path): {esc(str(rep.get("compared_as_note", "")))}</p>'
+    elif str(rep.get("compared_as", "")).startswith("stokes("):
+        as_path = ('<p class="warn">A stokes render: each image below is its five RGB images side by side '
+                   f'({", ".join(STOKES_PANELS)}; S1-S3 are signed), and every one of them is judged.</p>')
     scale = max(1, min(16, 640 // max(w, h)))
     embed = w * h <= EMBED_MAX_PIXELS
     data = {"width": w, "height": h, "scale": scale}

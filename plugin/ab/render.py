@@ -63,11 +63,22 @@ def _exr_threads():
             dr.set_thread_count(threads)
 
 
-def write_exr(path, img: np.ndarray) -> None:
-    """Write a linear float32 image as EXR, whole or not at all (temporary sibling, then rename)."""
+def write_exr(path, img: np.ndarray, channels: list[str] | None = None) -> None:
+    """Write a linear float32 image as EXR, whole or not at all (temporary sibling, then rename),
+    its channels named `channels` where given (else Mitsuba's defaults: R, G, B, or ch00, ...)."""
     mi = use_variant()
+    img = np.ascontiguousarray(img, dtype=np.float32)
     with _exr_threads(), atomic_path(path) as tmp:
-        mi.Bitmap(np.ascontiguousarray(img, dtype=np.float32)).write(tmp)
+        (mi.Bitmap(img) if channels is None else mi.Bitmap(img, channel_names=list(channels))).write(tmp)
+
+
+def render_channels(integrator, count: int) -> list[str] | None:
+    """The names of a render's `count` channels, as stock's film names them: the colour (Y; R, G,
+    B; R, G, B, A) and then the integrator's AOVs (an aov wrapper's, stokes's S0.R ... S3.B);
+    None where the count does not add up."""
+    aovs = list(integrator.aov_names())
+    colour = {1: ["Y"], 3: ["R", "G", "B"], 4: ["R", "G", "B", "A"]}.get(count - len(aovs))
+    return None if colour is None else colour + aovs
 
 
 def read_exr(path) -> np.ndarray:
@@ -84,7 +95,11 @@ def load_scene(mi, path: str, res=None, **params):
         with _exr_threads():  # an EXR texture or environment map is read while loading
             scene = mi.load_file(str(path), **params)
     except Exception as e:  # Mitsuba raises RuntimeError with a multi-line message
-        raise UserError(f"cannot load scene {path}: {str(e).strip().splitlines()[-1]}") from None
+        line = str(e).strip().splitlines()[-1]
+        if "only be used in polarized mode" in line:  # (Mitsuba's stokes integrator)
+            line += f" (the active variant is {mi.variant()}: pass --variant llvm_ad_spectral_polarized or " \
+                    f"llvm_ad_mono_polarized)"
+        raise UserError(f"cannot load scene {path}: {line}") from None
     if not scene.sensors():
         raise UserError(f"scene {path} has no sensor")
     if res is not None:

@@ -90,12 +90,12 @@ def _int_setting(text: str, key: str) -> int | None:
 
 @dataclass(frozen=True)
 class Wrapper:
-    """An `aov` or `moment` integrator around one of ESTIMATORS (possibly through another such
-    wrapper), as the scene's XML states it: it adds channels (AOVs, second moments) to the
-    estimator's result and changes nothing else. `wrap(inner)` is the same wrapper around another
+    """An `aov`, `moment` or `stokes` integrator around one of ESTIMATORS (possibly through another
+    such wrapper), as the scene's XML states it: it adds channels (AOVs, second moments, the
+    Stokes vector's four components) to the estimator's result and changes nothing else. `wrap(inner)` is the same wrapper around another
     integrator (a dict or a loaded object): stock's estimator, or ours standing in for it."""
 
-    type: str                        # "aov" | "moment"
+    type: str                        # "aov" | "moment" | "stokes"
     props: tuple = ()                # its own properties as (name, value) pairs (aov: aovs)
     inner: "Wrapper | None" = None   # a wrapper it wraps, else it wraps the estimator itself
     leaf: str = "path"               # the estimator inside: one of ESTIMATORS
@@ -106,6 +106,14 @@ class Wrapper:
     @property
     def name(self) -> str:
         return f"{self.type}({self.leaf if self.inner is None else self.inner.name})"
+
+    @property
+    def loaded_name(self) -> str:
+        """What `integrator_name` makes of the loaded wrapper: `stokes` prints nothing of what it
+        holds (its to_string is the class name and an address)."""
+        if self.type == "stokes":
+            return "stokes"
+        return f"{self.type}({self.leaf if self.inner is None else self.inner.loaded_name})"
 
 
 def substituted(value: str | None, defaults: dict) -> str | None:
@@ -121,9 +129,9 @@ def _xml_values(el, defaults: dict) -> dict:
 
 def _xml_wrapper(el, defaults: dict) -> tuple[Wrapper | None, dict]:
     """(the wrapper, the inner estimator's XML boolean properties) of an <integrator> element, or
-    (None, {}) when it is not aov/moment around exactly one of ESTIMATORS with properties we know."""
+    (None, {}) when it is not aov/moment/stokes around exactly one of ESTIMATORS with properties we know."""
     kind = substituted(el.get("type"), defaults)
-    if kind not in ("aov", "moment"):
+    if kind not in WRAPPERS:
         return None, {}
     props, inner = [], []
     for child in el:
@@ -229,7 +237,7 @@ class PathSettings:
         return self.estimator + (" (--as-path)" if self.as_path else "")
 
 
-SUPPORTED = f"{', '.join(ESTIMATORS)}, and aov or moment around the sampling ones"
+SUPPORTED = f"{', '.join(ESTIMATORS)}, and aov, moment or stokes around the sampling ones"
 
 
 def path_settings(mi, scene, as_path: bool = False, scene_path=None, params: dict | None = None) -> PathSettings:
@@ -244,7 +252,7 @@ def path_settings(mi, scene, as_path: bool = False, scene_path=None, params: dic
         return PathSettings({}, "path")
     name = integrator_name(integ)
     wrapper, inner_xml = scene_wrapper(scene_path, params) if scene_path is not None else (None, {})
-    if wrapper is not None and wrapper.name != name:
+    if wrapper is not None and wrapper.loaded_name != name:
         wrapper = None  # the XML's first <integrator> is not the one loaded (an include): not read
     own = name in ESTIMATORS
     if not own and wrapper is None and not as_path:
@@ -270,7 +278,7 @@ def path_settings(mi, scene, as_path: bool = False, scene_path=None, params: dic
     if not own and wrapper is None:
         shown = ", ".join(f"{k}={v}" for k, v in props.items()) or "path's defaults"
         note = f"the scene's integrator is {name}; both sides rendered with path ({shown})"
-    return PathSettings(props, name, as_path=not own and wrapper is None, note=note, wrapper=wrapper,
+    return PathSettings(props, name if wrapper is None else wrapper.name, as_path=not own and wrapper is None, note=note, wrapper=wrapper,
                         estimator=estimator)
 
 

@@ -106,7 +106,7 @@ def pixel_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarra
     seeded `seed`. One render instead of repeated ones: the variance comes from the samples, and
     the layer modes' per-render kernel launches are paid once, not once per repeat. Both sides
     go through this same estimator, so it compares the integrators, not two films."""
-    if isinstance(integrator, mi.AdjointIntegrator):
+    if isinstance(integrator, mi.AdjointIntegrator) or _stokes(integrator):
         return _render_moments(mi, scene, integrator, spp, seed)
     differentiable = isinstance(integrator, mi.CppADIntegrator)  # (prb and its kin: `sample` takes an AD mode first)
     sensor = scene.sensors()[0]
@@ -128,30 +128,39 @@ def pixel_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarra
     return v.mean(2), v.var(2, ddof=1), spp
 
 
+def _stokes(integrator) -> bool:
+    """Mitsuba's stokes wrapper: its `sample` needs the sensor that only its `render` sets, and
+    its result is judged on all five RGB panels (metrics.stokes_panels)."""
+    return integrator.class_name() == "StokesIntegrator"
+
+
 def _render_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarray, np.ndarray, int]:
     """Per-pixel mean and variance over MOMENT_RENDERS independent renders (seeds `seed` x
     MOMENT_RENDERS + r) of spp / MOMENT_RENDERS samples per pixel each; each render's pixel is
-    one sample of its mean."""
+    one sample of its mean. RGB; a stokes render's five panels side by side."""
     per = max(1, spp // MOMENT_RENDERS)
-    v = np.stack([np.array(mi.render(scene, integrator=integrator, spp=per, seed=seed * MOMENT_RENDERS + r),
-                           np.float64)[..., :3] for r in range(MOMENT_RENDERS)])
+    judged = metrics.stokes_panels if _stokes(integrator) else (lambda img: img[..., :3])
+    v = np.stack([judged(np.array(mi.render(scene, integrator=integrator, spp=per, seed=seed * MOMENT_RENDERS + r),
+                                  np.float64)) for r in range(MOMENT_RENDERS)])
     return v.mean(0), v.var(0, ddof=1), MOMENT_RENDERS
 
 
 def independent_seed_test(mi, scene_path, res: tuple[int, int], spp: int, stock: dict, ours: dict,
-                          params: dict | None = None, ours_modify=None) -> StatisticalStep:
+                          params: dict | None = None, ours_modify=None, wrap=None) -> StatisticalStep:
     """Stock's estimator and ours (integrator dicts: `path` and `layerbvh`, or `direct` and
     `layerbvh_direct`) at independent seeds (STOCK_SEED, OURS_SEED) on the scene at film
     `res`, `spp` camera samples per pixel a side (`pixel_moments`), then metrics.pixel_test
     (Welch, Šidák-corrected at metrics.Z_ALPHA). `ours_modify(params)` changes ours' copy of the
-    scene (negative controls)."""
+    scene (negative controls). `wrap(integrator)`: the scene's wrapper around each side where it
+    changes what is judged (stokes: scene_integrator.PathSettings.integrator)."""
     t0 = time.perf_counter()
     scene = load_scene(mi, str(scene_path), res, **(params or {}))
     ours_scene = scene if ours_modify is None else load_modified(mi, scene_path, res, params, ours_modify)
     stock = load_integrator(mi, stock)
     ours = load_integrator(mi, ours)
-    ref_mean, ref_var, n_ref = pixel_moments(mi, scene, stock, spp, STOCK_SEED)
-    mean, var, n = pixel_moments(mi, ours_scene, ours, spp, OURS_SEED)
+    wrapped = (lambda integ: integ) if wrap is None else (lambda integ: load_integrator(mi, wrap(integ)))
+    ref_mean, ref_var, n_ref = pixel_moments(mi, scene, wrapped(stock), spp, STOCK_SEED)
+    mean, var, n = pixel_moments(mi, ours_scene, wrapped(ours), spp, OURS_SEED)
     summary, passing = metrics.pixel_test(ref_mean, ref_var, mean, var, n_ref, n, alpha=metrics.Z_ALPHA, student=True)
     return StatisticalStep(resolution=tuple(res), spp=spp, pass_fraction=summary["pass_fraction"],
                            pixels=summary["pixels"], min_p=summary["min_p"], threshold=summary["threshold"],
@@ -159,20 +168,22 @@ def independent_seed_test(mi, scene_path, res: tuple[int, int], spp: int, stock:
 
 
 def statistical_step(mi, scene_path, size: tuple[int, int], samples: int, stock: dict, ours: dict,
-                     params: dict | None = None, ours_modify=None) -> StatisticalStep:
+                     params: dict | None = None, ours_modify=None, wrap=None) -> StatisticalStep:
     """Step 2: `independent_seed_test` on the scene's film shrunk to metrics.z_test_film(size),
     about Z_SAMPLE_SHARE x `samples` camera samples per side (metrics.z_test_spp)."""
     return independent_seed_test(mi, scene_path, metrics.z_test_film(*size), metrics.z_test_spp(*size, samples),
-                                 stock, ours, params, ours_modify)
+                                 stock, ours, params, ours_modify, wrap)
 
 
 def judge(mi, scene_path, stock_img: np.ndarray, ours_img: np.ndarray, spp: int, stock: dict,
-          ours: dict, params: dict | None = None, ours_modify=None) -> Verdict:
-    """Both steps for same-seed images of `scene_path` (film of their size, `spp` spp): step 2
-    runs only where step 1 fails, at about the same number of samples per side."""
+          ours: dict, params: dict | None = None, ours_modify=None, film: tuple[int, int] | None = None,
+          wrap=None) -> Verdict:
+    """Both steps for same-seed images of `scene_path` (film of their size, or `film` (W, H)
+    where the images are panels of it, `spp` spp): step 2 runs only where step 1 fails, at about
+    the same number of samples per side (`wrap`: independent_seed_test)."""
     s = metrics.same_seed_verdict(stock_img, ours_img)
     if s["passed"]:
         return Verdict(metrics.SAME_PATHS, s)
-    h, w = stock_img.shape[:2]
-    z = statistical_step(mi, scene_path, (w, h), w * h * spp, stock, ours, params, ours_modify)
+    w, h = film or stock_img.shape[1::-1]
+    z = statistical_step(mi, scene_path, (w, h), w * h * spp, stock, ours, params, ours_modify, wrap)
     return Verdict(metrics.verdict_label(False, z.pass_fraction), s, z)

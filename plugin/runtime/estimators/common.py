@@ -44,7 +44,12 @@ def loop(state: tuple, cond, body, symbolic: bool, label: str) -> tuple:
     applies the loop's mask to everything in the body, which arrays of another width, such as
     the traversal's compacted rays, cannot take.)"""
     if symbolic:
-        return dr.while_loop(state, cond, body, label=label, mode="symbolic")
+        # Polarized variants: a Mueller matrix's entries start as literal zeros and some stay
+        # literal through the body, which Dr.Jit's loop optimisation then takes for loop constants
+        # and refuses on re-recording ("presumed to be constant, but it changed"; direct's and
+        # prb_basic's loops on a dielectric). Without the optimisation, such a loop records once.
+        with dr.scoped_set_flag(dr.JitFlag.OptimizeLoops, not mi.is_polarized and dr.flag(dr.JitFlag.OptimizeLoops)):
+            return dr.while_loop(state, cond, body, label=label, mode="symbolic")
     # The first iteration's state too: a literal in it (dr.zeros, a constant) would be compiled
     # into that iteration's kernels, which the second iteration (evaluated arrays) then compiles
     # again (measured: a volpath case of the stability suite compiled 149 kernels, 3 of most).
@@ -56,6 +61,13 @@ def loop(state: tuple, cond, body, symbolic: bool, label: str) -> tuple:
                 x.schedule_state()
         dr.eval(*(x for x in state if not isinstance(x, mi.Sampler)))
     return state
+
+
+def unit_throughput(n: int) -> mi.Spectrum:
+    """A throughput of 1 on `n` lanes, as stock's `Spectrum throughput(1.f)`: in the polarized
+    variants the Mueller identity (`dr.full(mi.Spectrum, 1, n)` would fill all 16 entries with 1,
+    which the first column of a Stokes image shows and every polarizing surface then mixes)."""
+    return mi.Spectrum(dr.full(mi.Float, 1, n))
 
 
 def mis_weight(pdf_a, pdf_b):

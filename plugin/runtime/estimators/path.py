@@ -7,7 +7,7 @@ import drjit as dr
 import mitsuba as mi
 
 from layerbvh_mitsuba.runtime.estimators.common import (Kinds, Tracing, loop, mis_weight, path_kinds, read_depths,
-                                                        skip_area_emitters)
+                                                        skip_area_emitters, unit_throughput)
 from layerbvh_mitsuba.runtime.features import Features
 from layerbvh_mitsuba.runtime.record import bounce_kind
 
@@ -84,7 +84,7 @@ class PathEstimator:
         n = dr.width(active)
         return PathState(
             ray=ray, pi=pi, active=active, depth=dr.zeros(mi.UInt32, n), L=dr.zeros(mi.Spectrum, n),
-            beta=dr.full(mi.Spectrum, 1, n), eta=dr.full(mi.Float, 1, n),
+            beta=unit_throughput(n), eta=dr.full(mi.Float, 1, n),
             # As in stock `path`: a path that only sees the environment is a valid sample.
             valid=dr.full(mi.Bool, (not self.hide_emitters) and scene.environment() is not None, n),
             prev_si=dr.zeros(mi.SurfaceInteraction3f, n), prev_bsdf_pdf=dr.full(mi.Float, 1, n),
@@ -125,10 +125,12 @@ class PathEstimator:
             active_em &= ~queries.occluded(si.spawn_ray_to(ds.p), active_em)
             wo = si.to_local(ds.d)
             bsdf_value_em, bsdf_pdf_em = bsdf.eval_pdf(bsdf_ctx, si, wo, active_em)
+            bsdf_value_em = si.to_world_mueller(bsdf_value_em, -wo, si.wi)  # (polarized: into world frames)
             mis_em = dr.select(ds.delta, 1, mis_weight(ds.pdf, bsdf_pdf_em))
             Lr_dir = dr.select(active_em, beta * mis_em * bsdf_value_em * em_weight, 0)
 
         bsdf_sample, bsdf_weight = bsdf.sample(bsdf_ctx, si, sampler.next_1d(), sampler.next_2d(), active_next)
+        bsdf_weight = si.to_world_mueller(bsdf_weight, -bsdf_sample.wo, si.wi)
 
         # (Without either emission term L stays p.L itself: Dr.Jit's loop optimisation re-records
         # a loop whose state comes back unchanged, and `select(active, 0 + 0, 0)` on the literal

@@ -7,7 +7,7 @@ import drjit as dr
 import mitsuba as mi
 
 from layerbvh_mitsuba.runtime.estimators.common import (Kinds, Tracing, loop, mis_weight, read_ad_depths,
-                                                        skip_area_emitters, vertex_limit)
+                                                        skip_area_emitters, unit_throughput, vertex_limit)
 from layerbvh_mitsuba.runtime.estimators.media import MediaWalk, index_spectrum
 from layerbvh_mitsuba.runtime.estimators.replay import differential
 from layerbvh_mitsuba.runtime.features import Features
@@ -75,6 +75,11 @@ class PRBVolPathEstimator:
     FORWARD = False  # (stock's refuses forward mode)
 
     def __init__(self, props: mi.Properties):
+        if mi.is_polarized:
+            # Stock's fails at its first Russian roulette there: `dr.any(throughput != 0)` of a Mueller
+            # matrix reduces one axis only, and `next_1d` refuses the mask that leaves (a TypeError).
+            raise ValueError(f"prbvolpath does not run in polarized variants (stock's fails there); the active "
+                             f"variant is {mi.variant()}")
         self.max_depth, self.rr_depth, self.hide_emitters = read_ad_depths(props)
         self.vertices = vertex_limit(self.max_depth)
 
@@ -121,7 +126,7 @@ class PRBVolPathEstimator:
         state = VolumeReplayState(
             active=mi.Bool(active), depth=dr.zeros(mi.UInt32, n), ray=mi.Ray3f(ray),
             L=dr.zeros(mi.Spectrum, n) if not differential(mode) else mi.Spectrum(state_in),
-            dL=dr.zeros(mi.Spectrum, n) if dL is None else mi.Spectrum(dL), throughput=dr.full(mi.Spectrum, 1, n),
+            dL=dr.zeros(mi.Spectrum, n) if dL is None else mi.Spectrum(dL), throughput=unit_throughput(n),
             eta=dr.full(mi.Float, 1, n), si=dr.zeros(mi.SurfaceInteraction3f, n),
             needs_intersection=dr.full(mi.Bool, True, n), last_scatter_event=dr.zeros(mi.Interaction3f, n),
             last_scatter_pdf=dr.full(mi.Float, 1, n), medium=dr.zeros(mi.MediumPtr, n),
@@ -300,7 +305,7 @@ class PRBVolPathEstimator:
         n = dr.width(active)
         state = NEEState(active=active, ray=ray, total_dist=dr.zeros(mi.Float, n),
                          si=dr.zeros(mi.SurfaceInteraction3f, n), needs_intersection=dr.full(mi.Bool, True, n),
-                         medium=medium, transmittance=dr.full(mi.Spectrum, 1, n))
+                         medium=medium, transmittance=unit_throughput(n))
 
         def step(sampler, t: NEEState):
             active, ray, si, medium = mi.Bool(t.active), mi.Ray3f(t.ray), t.si, t.medium

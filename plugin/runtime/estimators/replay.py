@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from layerbvh_mitsuba.runtime.estimators.common import Tracing, skip_area_emitters
+from layerbvh_mitsuba.runtime.estimators.common import Tracing, skip_area_emitters, unit_throughput
 
 
 def area_jacobian(o, p, n, active):
@@ -44,7 +44,7 @@ class PathReplay:
         return cls(ray=mi.Ray3f(ray), pi=pi, ray_prev=mi.Ray3f(ray), pi_prev=dr.zeros(mi.PreliminaryIntersection3f, n),
                    active=mi.Bool(active), depth=dr.zeros(mi.UInt32, n),
                    L=dr.zeros(mi.Spectrum, n) if not differential(mode) else mi.Spectrum(state_in),
-                   dL=dr.zeros(mi.Spectrum, n) if dL is None else mi.Spectrum(dL), beta=dr.full(mi.Spectrum, 1, n),
+                   dL=dr.zeros(mi.Spectrum, n) if dL is None else mi.Spectrum(dL), beta=unit_throughput(n),
                    **more)
 
 

@@ -6,12 +6,20 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from layerbvh_mitsuba.runtime.estimators.common import mis_weight
+from layerbvh_mitsuba.runtime.estimators.common import mis_weight, unit_throughput
 from layerbvh_mitsuba.runtime.estimators.media import MediaWalk, index_spectrum
 
 
 def _unpolarized(x):
     return mi.unpolarized_spectrum(x)
+
+
+def _scaled(w: mi.Spectrum, factor) -> mi.Spectrum:
+    """A throughput times a per-wavelength factor (mi.UnpolarizedSpectrum: a transmittance, a
+    medium's coefficient), as stock's `Spectrum * UnpolarizedSpectrum`. Polarized variants: the
+    factor as a Mueller matrix (mi.Spectrum of it is the factor times the identity), since
+    Dr.Jit's Python arrays have no product of the two types."""
+    return w * (mi.Spectrum(factor) if mi.is_polarized else factor)
 
 
 @dataclass
@@ -30,12 +38,12 @@ class Transmittance:
     @staticmethod
     def free_flight(w, tr, free_flight_pdf, channel, is_spectral):
         tr_pdf = index_spectrum(free_flight_pdf, channel)
-        return dr.select(is_spectral, w * dr.select(tr_pdf > 0, tr / tr_pdf, 0), w)
+        return dr.select(is_spectral, _scaled(w, dr.select(tr_pdf > 0, tr / tr_pdf, 0)), w)
 
     @staticmethod
     def null_collision(w, mei, channel, is_spectral, not_spectral):
-        w = dr.select(is_spectral, w * mei.sigma_n, w)
-        return dr.select(not_spectral, w * mei.sigma_n / mei.combined_extinction, w)
+        w = dr.select(is_spectral, _scaled(w, mei.sigma_n), w)
+        return dr.select(not_spectral, _scaled(w, mei.sigma_n / mei.combined_extinction), w)
 
     @staticmethod
     def null_surface(w, bsdf_val, si, channel, active):
@@ -54,7 +62,7 @@ class ThroughputWeights:
 
     @staticmethod
     def start(n: int) -> Throughput:
-        return Throughput(throughput=dr.full(mi.Spectrum, 1, n), last_scatter_direction_pdf=dr.full(mi.Float, 1, n))
+        return Throughput(throughput=unit_throughput(n), last_scatter_direction_pdf=dr.full(mi.Float, 1, n))
 
     @staticmethod
     def copy(w: Throughput) -> Throughput:
@@ -78,14 +86,14 @@ class ThroughputWeights:
 
     @staticmethod
     def null_collision(w: Throughput, mei, null_scatter_prob, channel, spectral, plain, null) -> Throughput:
-        return Throughput(dr.select(spectral, w.throughput * mei.sigma_n / null_scatter_prob, w.throughput),
+        return Throughput(dr.select(spectral, _scaled(w.throughput, mei.sigma_n / null_scatter_prob), w.throughput),
                           w.last_scatter_direction_pdf)
 
     @staticmethod
     def real_collision(w: Throughput, mei, null_scatter_prob, channel, spectral, plain) -> Throughput:
-        throughput = dr.select(spectral, w.throughput * mei.sigma_s
-                               / dr.mean(mei.sigma_t / mei.combined_extinction, axis=0), w.throughput)
-        throughput = dr.select(plain, throughput * mei.sigma_s / mei.sigma_t, throughput)
+        throughput = dr.select(spectral, _scaled(w.throughput, mei.sigma_s
+                               / dr.mean(mei.sigma_t / mei.combined_extinction, axis=0)), w.throughput)
+        throughput = dr.select(plain, _scaled(throughput, mei.sigma_s / mei.sigma_t), throughput)
         return Throughput(throughput, w.last_scatter_direction_pdf)
 
     @staticmethod
@@ -117,7 +125,7 @@ class ThroughputWeights:
 
     @staticmethod
     def shadow_start(shadow_w, active):
-        return dr.full(mi.Spectrum, 1, dr.width(active))
+        return unit_throughput(dr.width(active))
 
     @staticmethod
     def direct(w: Throughput, transmittance, emitter_val, f, pdf, ds, channel, active, on_surface: bool):
