@@ -395,6 +395,12 @@ MUTATIONS = (
              "    write_exr(args.output, img, render_channels(rendered, img.shape[-1] if img.ndim == 3 else 1))\n",
              "    write_exr(args.output, img)\n",
              ("tests/runtime/test_polarized.py::test_render_writes_the_stokes_channels_under_stocks_names",)),
+    Mutation("third_party_integrator_ignored", "compare renders the scene's own integrator whatever "
+             "CompareSettings.integrator (a SCENE@INTEGRATOR row) asks for",
+             "plugin/ab/compare.py",
+             "                         None if s.integrator is None else _stage(STOCK, \"setup\", lambda: load_integrator(mi, s.integrator)))\n",
+             "                         None)\n",
+             ("tests/tools/test_third_party.py::test_table_has_a_verdict_per_scene_and_names_refused_plugins",)),
 )
 
 

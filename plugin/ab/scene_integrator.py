@@ -240,18 +240,20 @@ class PathSettings:
 SUPPORTED = f"{', '.join(ESTIMATORS)}, and aov, moment or stokes around the sampling ones"
 
 
-def path_settings(mi, scene, as_path: bool = False, scene_path=None, params: dict | None = None) -> PathSettings:
+def path_settings(mi, scene, as_path: bool = False, scene_path=None, params: dict | None = None,
+                  integrator=None) -> PathSettings:
     """The scene's own estimator and its settings, read from its integrator object: `path`
     (max_depth, rr_depth, hide_emitters) or `direct` (emitter_samples, bsdf_samples,
     hide_emitters), and an `aov`/`moment` wrapper around either (read from `scene_path`'s XML with
     its `params`), kept as `wrapper`. Any other integrator is refused (UserError) unless
     `as_path`: then it is compared as path, its settings read where it has them (a wrapper's inner
-    integrator, volpath's depths)."""
-    integ = scene.integrator()
+    integrator, volpath's depths). `integrator`: a loaded integrator read instead of the scene's
+    (the scene file is then not read either)."""
+    integ = scene.integrator() if integrator is None else integrator
     if integ is None:
         return PathSettings({}, "path")
     name = integrator_name(integ)
-    wrapper, inner_xml = scene_wrapper(scene_path, params) if scene_path is not None else (None, {})
+    wrapper, inner_xml = scene_wrapper(scene_path, params) if scene_path is not None and integrator is None else (None, {})
     if wrapper is not None and wrapper.loaded_name != name:
         wrapper = None  # the XML's first <integrator> is not the one loaded (an include): not read
     own = name in ESTIMATORS

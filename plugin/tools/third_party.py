@@ -5,7 +5,9 @@ loads the scene with the project's loader (film resized to --res) and runs the o
 (`ab.compare.compare`: stock `path` and `layerbvh` with the scene's own sensor, the same spp and
 seed, then the two-step verdict and the image metrics). Scenes whose integrator ours does not
 mirror are compared with `path` using the inner integrator's settings when they can be read, else
-path's defaults, and the table says so. Scenes with participating media (volpath, volpathmis) run
+path's defaults, and the table says so. A SCENE@INTEGRATOR entry renders the scene with that
+integrator instead (ptracer, prb, prb_basic, prbvolpath: no scene here asks for them), carrying
+over the scene's own max_depth, rr_depth and hide_emitters. Scenes with participating media (volpath, volpathmis) run
 with --media-traversal (default auto: its rule runs them per_ray in one megakernel, since the
 wavefront loop is 8-126x slower there, PERFORMANCE.md entry 30); the notes say so.
 
@@ -70,7 +72,20 @@ DEFAULT_SCENES = (
     "mitsuba/tests/floating_sphere/*.xml",
     "mitsuba/tests/orthographic_sensor/*.xml",
     "mitsuba/tests/participating_media/*.xml",
+    # The integrators no scene here asks for, on scenes that suit them (SCENE@INTEGRATOR: rendered
+    # with that integrator at the scene's own depths): light tracing and the differentiable ones.
+    "bitterli/cornell-box/scene.xml@ptracer",
+    "bitterli/veach-mis/scene.xml@ptracer",
+    "mitsuba/matpreview/matpreview.xml@ptracer",
+    "bitterli/cornell-box/scene.xml@prb",
+    "bitterli/veach-mis/scene.xml@prb",
+    "mitsuba/matpreview/matpreview.xml@prb_basic",
+    "mitsuba/tests/participating_media/test_homo_area_light_volpath.xml@prbvolpath",
+    "mitsuba/tests/participating_media/test_homo_obj_inside_medium_volpath.xml@prbvolpath",
 )
+# The settings of the scene's own integrator that a SCENE@INTEGRATOR row carries over, by integrator.
+CARRIED = {"direct": ("hide_emitters",), "depth": ()}
+DEPTHS = ("max_depth", "rr_depth", "hide_emitters")
 
 # ------------------------------------------------------------------------------------------------
 # One scene, in its own process (a sweep point: sweep.point.run_third_party).
@@ -175,6 +190,17 @@ def run_worker(args) -> dict:
     rec["triangles"], rec["other_shapes"] = _shape_counts(scene)
     # The table compares every scene as path and says so where its integrator is another one.
     path = path_settings(mi, scene, as_path=True, scene_path=scene_path)
+    integrator = None
+    if getattr(args, "integrator", None):  # SCENE@INTEGRATOR: that integrator at the scene's own depths
+        carried = {k: v for k, v in path.props.items() if k in CARRIED.get(args.integrator, DEPTHS)}
+        integrator, asked = {"type": args.integrator, **carried}, path.compared_as
+        try:
+            path = path_settings(mi, scene, integrator=mi.load_dict(integrator))
+        except (UserError, RuntimeError) as e:
+            rec["result"] = f"refused: {one_line(e)}"
+            return rec
+        shown = ", ".join(f"{k}={v}" for k, v in carried.items()) or "no settings"
+        rec["notes"].append(f"rendered with {args.integrator} instead of the scene's {asked} ({shown} carried over)")
     overrides, note = {}, path.note
     if "hide_emitters" in text and "hide_emitters" not in path.props:
         m = re.search(r'name\s*=\s*"hide_emitters"\s+value\s*=\s*"(\w+)"', text)
@@ -195,7 +221,8 @@ def run_worker(args) -> dict:
     rec["resolution"] = [int(x) for x in sensor.film().crop_size()]
 
     settings = CompareSettings(scene=scene_path, spp=args.spp, res=tuple(args.res), seed=args.seed,
-                               traversal=Traversal.parse(traversal), as_path=True, path_overrides=overrides)
+                               traversal=Traversal.parse(traversal), as_path=True, path_overrides=overrides,
+                               integrator=integrator)
     try:
         c = compare(mi, settings, scene=scene)
     except ComparisonFailed as e:
@@ -207,6 +234,7 @@ def run_worker(args) -> dict:
             where = "render" if e.stage == "render" else "setup/BVH build"
             rec["result"] = f"error in layerbvh ({where}): {one_line(e.error)}"
         return rec
+    rec["compared_as"] = c.path.compared_as  # (what the comparison rendered)
     rec["stock_s"], rec["ours_s"] = c.stock_time.render_s, c.ours_time.render_s
     if media:
         ran = ", ".join(sorted({m.split(":")[-1] for m in c.stats.modes_used})) or "per_ray"
@@ -233,8 +261,9 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--root", default=str(ROOT.parent / "shared" / "assets"),
                    help="folder holding the third-party scenes (default: ../shared/assets from the repo root)")
-    p.add_argument("--scenes", nargs="+", default=list(DEFAULT_SCENES), metavar="GLOB",
-                   help="scene files or globs relative to --root (default: the task's list)")
+    p.add_argument("--scenes", nargs="+", default=list(DEFAULT_SCENES), metavar="GLOB[@INTEGRATOR]",
+                   help="scene files or globs relative to --root (default: the task's list); GLOB@INTEGRATOR "
+                        "renders them with that integrator (ptracer, prb, ...) at the scene's own depths")
     p.add_argument("--res", type=int, nargs=2, default=[64, 48], metavar=("W", "H"))
     p.add_argument("--spp", type=int, default=8)
     p.add_argument("--seed", type=int, default=0)
@@ -259,15 +288,17 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _find_scenes(root: Path, patterns) -> tuple[list[Path], list[str]]:
+def _find_scenes(root: Path, patterns) -> tuple[list[tuple[Path, str | None]], list[str]]:
+    """(scene file, integrator or None) for each file a GLOB or GLOB@INTEGRATOR names, in order."""
     found, missing = [], []
     for pat in patterns:
-        hits = sorted(Path(h) for h in glob.glob(str(root / pat)) if Path(h).is_file())
+        glob_, _, integrator = pat.partition("@")
+        hits = sorted(Path(h) for h in glob.glob(str(root / glob_)) if Path(h).is_file())
         if not hits:
             missing.append(pat)
         for h in hits:
-            if h not in found:
-                found.append(h)
+            if (h, integrator or None) not in found:
+                found.append((h, integrator or None))
     return found, missing
 
 
@@ -296,7 +327,8 @@ def _markdown(cmdline: str, args, rows, missing, total: str) -> str:
              f"Stock vs ours (traversal `{args.traversal}`; scenes with media `{args.media_traversal}`) in the "
              f"scene's own integrator where ours mirrors it (`path`, `direct`, `volpath`, `volpathmis`, an "
              f"`aov`/`moment` wrapper around them: ours inside), any other compared as path "
-             f"(the notes say so); same seed {args.seed}, "
+             f"(the notes say so); a scene@integrator row renders the scene with that integrator (ptracer, prb, "
+             f"...) at the scene's own depths; same seed {args.seed}, "
              f"{args.spp} spp, {args.res[0]}x{args.res[1]}, variant `{args.variant}`, root `{_shown(args.root)}`. "
              f"within 1e-3 = share of pixels whose every channel differs by <= 1e-3; FLIP/rel_mse from "
              f"`metrics.compare_images`; rays: of --check-rays random rays through the scene's triangles, how many "
@@ -351,7 +383,9 @@ def main(argv=None) -> int:
         print(f"note: {pat} not found under {root}; skipped", file=sys.stderr)
     settings = {"traversal": args.traversal, "media_traversal": args.media_traversal, "res": list(args.res),
                 "spp": args.spp, "seed": args.seed, "variant": args.variant, "check_rays": args.check_rays}
-    points = make_points("third_party", [(str(s), s.relative_to(root).as_posix()) for s in scenes], [settings])
+    points = [p for s, integ in scenes for p in make_points(
+        "third_party", [(str(s), s.relative_to(root).as_posix() + (f"@{integ}" if integ else ""))],
+        [settings if integ is None else {**settings, "integrator": integ}])]
     workers = None if args.scheduler else (args.workers or os.cpu_count() or 1)
     try:
         sweep = run_sweep(points, args.out, workers=workers, scheduler=args.scheduler, rerun=args.rerun,

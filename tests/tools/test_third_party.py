@@ -53,7 +53,8 @@ def test_table_has_a_verdict_per_scene_and_names_refused_plugins(tmp_path):
                                             cbox, count=1, flags=re.S))
     md, js = tmp_path / "table.md", tmp_path / "table.json"
     proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "third_party.py"), "--root", str(root),
-                           "--scenes", "cbox.xml", "direct.xml", "instanced.xml", "curve.xml", "missing/*.xml", "--res", "16", "16",
+                           "--scenes", "cbox.xml", "direct.xml", "instanced.xml", "curve.xml", "missing/*.xml", "cbox.xml@ptracer",
+                           "cbox.xml@prb_projective", "--res", "16", "16",
                            "--spp", "4", "--check-rays", "20000", "--md", str(md), "--json", str(js),
                            "--out", str(tmp_path / "sweep"), "--workers", "2"],
                           capture_output=True, text=True, timeout=600, cwd=ROOT)
@@ -70,6 +71,11 @@ def test_table_has_a_verdict_per_scene_and_names_refused_plugins(tmp_path):
     # Instances are traced (and their placed triangles checked ray by ray against Embree).
     assert rows["instanced.xml"]["result"] == SAME_PATHS, rows["instanced.xml"]
     assert rows["instanced.xml"]["ray_check"]["other_prim"] == rows["instanced.xml"]["ray_check"]["ties"]
+    # SCENE@INTEGRATOR: the scene rendered with that integrator at its own depths; one we do not mirror is refused.
+    lt = rows["cbox.xml@ptracer"]
+    assert (lt["compared_as"], lt["result"], lt["integrator"]["max_depth"]) == ("ptracer", SAME_PATHS, 8), lt
+    assert "rendered with ptracer instead of the scene's path (max_depth=8" in lt["notes"][0], lt["notes"]
+    assert rows["cbox.xml@prb_projective"]["result"].startswith("refused: the scene's integrator is prb_projective")
     refused = rows["curve.xml"]["result"]
     assert refused.startswith("refused:") and "'linearcurve'" in refused and "hair" in refused
     table = md.read_text()
