@@ -26,14 +26,15 @@ ps = path_settings(mi, scene, scene_path={str(STOKES)!r})
 out(case="settings", compared_as=ps.compared_as, scene_integrator=ps.scene_integrator, props=ps.props)
 stock = np.array(mi.render(scene, spp=4, seed=2))
 # The integrators the scene does not name run unwrapped: their RGB against stock's at the same seed.
-for name, ours, t in [("stokes", "layerbvh", "per_ray"), ("stokes", "layerbvh", "layer_sorted"),
-                      ("direct", "layerbvh_direct", "per_ray"), ("prb", "layerbvh_prb", "layer_sorted"),
-                      ("ptracer", "layerbvh_ptracer", "per_ray")]:
+# (direct and ptracer, measured equal to stock there too, are left out for the suite's time: their
+# estimators have no polarized-specific code of their own beyond what these cases run.)
+# (stokes in layer_sorted: the compare below.)
+for name, ours, t in [("stokes", "layerbvh", "per_ray"), ("prb", "layerbvh_prb", "layer_sorted")]:
     props = {{"traversal": t, "treelet_height": 2}}
     if name == "stokes":
         ref, img = stock, np.array(mi.render(scene, integrator=mi.load_dict(ps.integrator({{"type": ours, **ps.props, **props}})), spp=4, seed=2))
     else:
-        depth = {{}} if name == "direct" else {{"max_depth": 6}}
+        depth = {{"max_depth": 6}}
         ref = np.array(mi.render(scene, integrator=mi.load_dict({{"type": name, **depth}}), spp=4, seed=2))
         img = np.array(mi.render(scene, integrator=mi.load_dict({{"type": ours, **depth, **props}}), spp=4, seed=2))
     judged = (metrics.stokes_panels(ref), metrics.stokes_panels(img)) if name == "stokes" else (ref, img)
@@ -87,7 +88,7 @@ def test_a_stokes_scene_is_read_as_stokes_around_its_estimator(polarized):
     assert (s["compared_as"], s["scene_integrator"], s["props"]) == ("stokes(path)", "stokes(path)", {"max_depth": 8})
 
 
-@pytest.mark.parametrize("case,traversal", [("stokes", "per_ray"), ("stokes", "layer_sorted")])
+@pytest.mark.parametrize("case,traversal", [("stokes", "per_ray")])
 def test_stokes_around_ours_equals_stock_in_all_four_stokes_components(polarized, case, traversal):
     """15 channels (RGB, then S0-S3 in RGB), each equal to stock's at the same seed; the scene
     polarizes (S1-S3 are not zero), so a throughput that is not the Mueller identity, or a BSDF value
@@ -97,8 +98,7 @@ def test_stokes_around_ours_equals_stock_in_all_four_stokes_components(polarized
     assert max(r["stokes_max"][6:15]) > 0.05, r["stokes_max"]
 
 
-@pytest.mark.parametrize("case,traversal", [("direct", "per_ray"), ("prb", "layer_sorted"), ("ptracer", "per_ray"),
-                                            ("volpath", "auto")])
+@pytest.mark.parametrize("case,traversal", [("prb", "layer_sorted"), ("volpath", "auto")])
 def test_our_estimators_equal_stock_in_the_polarized_variants(polarized, case, traversal):
     r = polarized[(case, traversal)]
     assert r["passed"], r
