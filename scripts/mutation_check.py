@@ -401,6 +401,12 @@ MUTATIONS = (
              "                         None if s.integrator is None else _stage(STOCK, \"setup\", lambda: load_integrator(mi, s.integrator)))\n",
              "                         None)\n",
              ("tests/tools/test_third_party.py::test_table_has_a_verdict_per_scene_and_names_refused_plugins",)),
+    Mutation("gradient_stock_side_taken_for_ours", "a gradient step given stock's earlier renders takes them for "
+             "ours' side as well (the negative control then compares stock with itself)",
+             "plugin/ab/gradient.py",
+             '    side = {} if stock_side is None else {"stock": stock_side}\n',
+             '    side = {} if stock_side is None else {"stock": stock_side, "ours": stock_side}\n',
+             ("tests/runtime/test_prb.py::test_gradient_statistical_step_and_its_negative_control",)),
 )
 
 

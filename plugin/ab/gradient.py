@@ -100,6 +100,7 @@ class GradientStatistical:
     forward: dict | None        # pixel_test's summary on the forward derivative
     backward: dict              # ... on the backward gradient's components
     seconds: float
+    stock_side: tuple | None = field(default=None, repr=False)  # stock's renders (_moments), for reuse
 
     @property
     def passed(self) -> bool:
@@ -128,20 +129,24 @@ GRAD_SAMPLES = 1 << 20
 
 
 def statistical_step(mi, scene_path, size: tuple[int, int], stock: dict, ours: dict, key: str,
-                     forward: bool, params: dict | None = None, ours_modify=None) -> GradientStatistical:
+                     forward: bool, params: dict | None = None, ours_modify=None,
+                     stock_side: tuple | None = None) -> GradientStatistical:
     """Both sides' derivatives at independent seeds on the scene's film shrunk to
     metrics.z_test_film(size), GRAD_SAMPLES camera samples a side spread over MOMENT_RENDERS
-    renders; each pixel and component is tested (Welch, Šidák over them)."""
+    renders; each pixel and component is tested (Welch, Šidák over them). `stock_side`: stock's
+    renders from an earlier step with the same arguments (its `stock_side`), not rendered again
+    (a negative control changes ours' side only)."""
     t0 = time.perf_counter()
     res = metrics.z_test_film(*size)
     spp = max(1, GRAD_SAMPLES // (res[0] * res[1] * MOMENT_RENDERS))
     scene = load_scene(mi, str(scene_path), res, **(params or {}))
     ours_scene = scene if ours_modify is None else load_modified(mi, scene_path, res, params, ours_modify)
     stock_int, ours_int = load_integrator(mi, stock), load_integrator(mi, ours)
-    side = {}
+    side = {} if stock_side is None else {"stock": stock_side}
     for name, sc, integ, seed in (("stock", scene, stock_int, STOCK_SEED), ("ours", ours_scene, ours_int, OURS_SEED)):
-        side[name] = _moments([gradients(mi, sc, integ, key, spp, seed * MOMENT_RENDERS + r, forward)
-                               for r in range(MOMENT_RENDERS)])
+        if name not in side:
+            side[name] = _moments([gradients(mi, sc, integ, key, spp, seed * MOMENT_RENDERS + r, forward)
+                                   for r in range(MOMENT_RENDERS)])
     n = MOMENT_RENDERS
 
     def test(i):
@@ -149,7 +154,7 @@ def statistical_step(mi, scene_path, size: tuple[int, int], stock: dict, ours: d
         return metrics.pixel_test(a.mean(0), a.var(0, ddof=1), b.mean(0), b.var(0, ddof=1), n, n,
                                   alpha=metrics.Z_ALPHA, student=True)[0]
     return GradientStatistical(resolution=tuple(res), spp=spp, renders=n, forward=test(0) if forward else None,
-                               backward=test(1), seconds=time.perf_counter() - t0)
+                               backward=test(1), seconds=time.perf_counter() - t0, stock_side=side["stock"])
 
 
 @dataclass

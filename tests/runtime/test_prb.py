@@ -98,7 +98,10 @@ def test_gradient_statistical_step_and_its_negative_control(scene_as, key, contr
     """The gradient verdict's second step (independent seeds, gradient.GRAD_SAMPLES a side over
     verdict.MOMENT_RENDERS renders, Welch per pixel and per component) passes ours against stock
     and fails ours with a parameter 2% off: the light 2% brighter for a reflectance's gradient,
-    every reflectance 2% higher for the light's."""
+    every reflectance 2% higher for the light's. Forward and backward: the light's backward
+    gradient has 3 components, too few to see the reflectances' 2% alone (p = 0.008 measured
+    against a threshold of 0.0033); its forward image sees them. Stock's renders are reused by
+    the control, for the suite's time."""
     def off(params):
         for k in params.keys():
             if (control == "light" and k.endswith("radiance.value")) or \
@@ -108,7 +111,7 @@ def test_gradient_statistical_step_and_its_negative_control(scene_as, key, contr
     args = (mi, path, (8, 8), {"type": "prb", "max_depth": 6}, {"type": "layerbvh_prb", "max_depth": 6}, key, True)
     same = gradient.statistical_step(*args)
     assert same.passed, same
-    bad = gradient.statistical_step(*args, ours_modify=off)
+    bad = gradient.statistical_step(*args, ours_modify=off, stock_side=same.stock_side)
     assert not bad.passed, bad
 
 
