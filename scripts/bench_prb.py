@@ -30,10 +30,12 @@ from layerbvh_mitsuba.repo import SCENES  # noqa: E402
 
 def _timed(fn, reps: int) -> float:
     fn()  # warm-up: compiles (or loads from the kernel cache)
+    dr.sync_thread()
     times = []
     for _ in range(reps):
         t0 = time.perf_counter()
         fn()
+        dr.sync_thread()  # (Dr.Jit's LLVM backend launches kernels asynchronously)
         times.append(time.perf_counter() - t0)
     return statistics.median(times)
 
@@ -60,7 +62,8 @@ def main() -> int:
     p.add_argument("--spp", type=int, default=16)
     p.add_argument("--reps", type=int, default=5)
     p.add_argument("--traversals", nargs="+", default=["per_ray", "layer_sorted", "auto"])
-    p.add_argument("--integrator", default="prb", choices=["prb", "prb_basic"])
+    p.add_argument("--integrator", default="prb", choices=["prb", "prb_basic", "path"],
+                   help="path: the primal column only, for reference (ours is then `layerbvh`)")
     a = p.parse_args()
     cpu = subprocess.run(["sh", "-c", "lscpu | grep 'Model name'"], capture_output=True, text=True).stdout.strip()
     print(f"{cpu}; Dr.Jit LLVM vector width {layerbvh.llvm_vector_width()} lanes, "
@@ -72,13 +75,13 @@ def main() -> int:
         key = next(k for k in params.keys() if k.endswith("reflectance.value"))
         depth = scene.integrator().max_depth if hasattr(scene.integrator(), "max_depth") else 8
         sides = [("stock " + a.integrator, {"type": a.integrator, "max_depth": depth})]
-        sides += [(f"ours {t}", {"type": f"layerbvh_{a.integrator}", "max_depth": depth, "traversal": t})
-                  for t in a.traversals]
+        ours = "layerbvh" if a.integrator == "path" else f"layerbvh_{a.integrator}"
+        sides += [(f"ours {t}", {"type": ours, "max_depth": depth, "traversal": t}) for t in a.traversals]
         base = None
         for label, d in sides:
             integ = mi.load_dict(d)
             primal = _timed(lambda: dr.eval(mi.render(scene, integrator=integ, spp=a.spp, seed=1)), a.reps)
-            it = _timed(_iteration(scene, params, key, integ, a.spp), a.reps)
+            it = float("nan") if a.integrator == "path" else _timed(_iteration(scene, params, key, integ, a.spp), a.reps)
             base = base or (primal, it)
             print(f"{name:<11} {label:<24} {primal:9.3f} {primal / base[0]:8.2f} {it:12.3f} {it / base[1]:8.2f}",
                   flush=True)
