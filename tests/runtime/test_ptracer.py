@@ -26,9 +26,34 @@ def _ours(traversal: str) -> dict | None:
     return {"treelet_height": LAYER_HEIGHT} if traversal.startswith("layer_") else None
 
 
-# The verdict each scene gets: the same paths on cbox, agreement within noise where a light ray
-# meeting a shared edge takes another triangle (see the test).
-VERDICT = {"cbox": metrics.SAME_PATHS, "bunny_box": metrics.AGREES, "paper_mix": metrics.AGREES}
+# The verdicts each scene may get. Same seed, a light ray meeting a shared edge may take the
+# other triangle and splat elsewhere; whether it does depends on float rounding, which differs
+# between CPUs (Embree's ISA path, Dr.Jit's LLVM vector width, FMA contraction): bunny_box
+# layer_unsorted kept 99.61% of pixels within tolerance on an AVX-512 EPYC ("agrees", the
+# statistical step decides) and 100% on an AVX2 EPYC ("same paths"; issue 64). Both are right,
+# so both are accepted there. cbox has no edge a light path meets at these settings.
+VERDICTS = {"cbox": {metrics.SAME_PATHS},
+            "bunny_box": {metrics.SAME_PATHS, metrics.AGREES},
+            "paper_mix": {metrics.SAME_PATHS, metrics.AGREES}}
+# Power at the test's own settings (spp 8, 32x32): the statistical step there draws 16 spp per
+# pixel and cannot see a 2% albedo change (issue 55), so an "agrees" alone would pass a wrong
+# estimator. Same-seed paths that diverge at a few shared edges leave most pixels within
+# tolerance (measured: bunny_box 99.6-100%, paper_mix 97.0%); a wrong estimator at the same seed
+# leaves few (every reflectance x1.02: bunny_box 2.8%, paper_mix 11.0%). The bound sits far
+# from both, so no CPU's rounding decides it.
+MIN_SAME_SEED_FRAC = 0.9
+SIZE = dict(spp=8, res=(32, 32))
+
+
+def _ptracer_verdict(scene_as, name, traversal, ours_modify=None):
+    return testing.verdict_vs_stock(_ptracer(scene_as, name), traversal=traversal, ours_props=_ours(traversal),
+                                    ours_modify=ours_modify, **SIZE)
+
+
+def _matches_stock(name, v) -> bool:
+    """The test's criterion: a verdict this scene may get, and same-seed paths that diverged at a
+    few edges at most (MIN_SAME_SEED_FRAC)."""
+    return v.label in VERDICTS[name] and v.same_seed["values"]["frac_within"] >= MIN_SAME_SEED_FRAC
 
 
 @pytest.mark.parametrize("name,traversal", [("cbox", "per_ray"), ("cbox", "layer_sorted"), ("cbox", "embree"),
@@ -38,16 +63,24 @@ def test_ptracer_agrees_with_stock(scene_as, name, traversal):
     verdict at its users' settings (the scene's max_depth). Same seed, stock's draws in stock's
     order: `embree` (our loop with Mitsuba's queries) gives stock's image to float noise, and our
     traversal the same paths on cbox. Where a light ray meets a shared edge, our traversal may
-    return the other triangle, and that light path goes elsewhere and splats on other pixels:
-    on bunny_box (69k triangles) 99.6% of pixels stay within tolerance, on paper_mix (glass,
-    mirrors) 97%, so the statistical step decides there."""
-    v = testing.verdict_vs_stock(_ptracer(scene_as, name), spp=8, res=(32, 32), traversal=traversal,
-                                 ours_props=_ours(traversal))
-    assert v.label == VERDICT[name], f"{name} ({traversal}): {v.label}: {v.summary()}"
+    return the other triangle, and that light path goes elsewhere and splats on other pixels;
+    how many do is up to the CPU's rounding (VERDICTS), so the statistical step may decide."""
+    v = _ptracer_verdict(scene_as, name, traversal)
+    assert _matches_stock(name, v), f"{name} ({traversal}): {v.label}: {v.summary()}"
     same = v.same_seed["values"]
     assert same["mean_ref"] > 0.01, "the scene should not render black"
     if traversal == "embree":
         assert same["max_abs"] < 1e-4, same
+
+
+def test_ptracer_agreement_has_power_at_its_settings(scene_as):
+    """Negative control of the test above at its own settings (bunny_box, layer_unsorted, spp 8,
+    32x32): ours with every reflectance 2% brighter must fail its criterion."""
+    def brighter(params):
+        for key in [k for k in params.keys() if k.endswith("reflectance.value")]:
+            params[key] = params[key] * 1.02
+    v = _ptracer_verdict(scene_as, "bunny_box", "layer_unsorted", ours_modify=brighter)
+    assert not _matches_stock("bunny_box", v), f"a 2% brighter scene passed: {v.label}: {v.summary()}"
 
 
 def test_ptracer_layer_path_ran(scene_as, layer_path_ran):
