@@ -1,6 +1,7 @@
 """layerbvh: Layer BVH build, layout and exact sorted wavefront traversal on Dr.Jit."""
 from .auto import AUTO, AutoPolicy, choice_key
-from .backend import cpu_model, from_numpy, llvm_vector_width, set_llvm_vector_width
+from .backend import (LLVM_ISAS, apply_llvm_isa_from_env, cpu_model, from_numpy, llvm_isa, llvm_vector_width,
+                      set_llvm_isa, set_llvm_vector_width)
 from .inputs import DEFAULT_BRANCHING, DEFAULT_LEAF_SIZE, default_leaf_size, DEFAULT_TREELET_HEIGHT, PARAM_RANGES, check_mesh, check_param
 from .bvh import BATCH_RAYS, TRACE_MODES, Hits, LayerBVH, Occlusion, build, build_instanced
 from .instances import Group, Instance
@@ -16,8 +17,11 @@ from .wavefront import MODES
 __all__ = ["AUTO", "AutoPolicy", "choice_key", "BATCH_RAYS", "TRACE_MODES", "build", "build_instanced", "Group", "Instance", "LayerBVH", "Hits", "Occlusion", "BVHStats", "TraceStats",
            "LayerLayout", "check_layout", "MODES", "MISS", "PARAM_RANGES", "check_mesh", "check_param",
            "DEFAULT_TREELET_HEIGHT", "DEFAULT_LEAF_SIZE", "DEFAULT_BRANCHING", "BRANCHINGS", "default_leaf_size",
-           "MAX_DEPTH", "cpu_model", "from_numpy", "llvm_vector_width", "set_llvm_vector_width",
+           "MAX_DEPTH", "cpu_model", "from_numpy", "llvm_vector_width", "set_llvm_vector_width", "LLVM_ISAS", "llvm_isa",
+           "set_llvm_isa",
            # the locality model
            "LocalityRow", "LocalitySettings", "RaySet", "at_headline", "headline_config", "measure", "preset_verdict", "replay",
            "PRESETS", "CacheLevel", "Preset", "preset"]
 __version__ = "0.1.0"
+
+apply_llvm_isa_from_env()  # LAYERBVH_LLVM_ISA: before any kernel is compiled

@@ -93,6 +93,48 @@ def set_llvm_vector_width(width: int) -> None:
     set_target(cpu(), features(), width)
 
 
+# The instruction sets the LLVM backend can be told to compile for (LAYERBVH_LLVM_ISA): the
+# project's machines are AVX2 (8 lanes) or AVX-512 (16 lanes) CPUs, and float rounding in a
+# kernel (vector width, FMA contraction, the ISA's min/max and rcp) may differ between them
+# (issue 64). "avx2" on an AVX-512 CPU compiles every kernel as an AVX2 CPU would get it, so a
+# test's expectation can be checked at both; Embree's ISA cannot be chosen (Mitsuba passes
+# Embree a fixed configuration, and its Embree 3 reads no configuration file).
+LLVM_ISAS = {"avx2": 8, "avx512": 16}
+LLVM_ISA_ENV = "LAYERBVH_LLVM_ISA"
+
+
+def llvm_isa() -> str:
+    """The instruction set the LLVM backend compiles for: "avx512", "avx2" or "other"."""
+    features = _llvm_target()[1]().decode().split(",")
+    return "avx512" if "+avx512f" in features else "avx2" if "+avx2" in features else "other"
+
+
+def set_llvm_isa(isa: str) -> None:
+    """Make the LLVM backend compile kernels for `isa` (LLVM_ISAS) at its vector width: "avx2"
+    turns off every AVX-512 feature of this CPU's (it must have AVX2); "avx512" needs a CPU
+    that has it. Kernels compiled afterwards (Mitsuba's too) use it."""
+    if isa not in LLVM_ISAS:
+        raise ValueError(f"{LLVM_ISA_ENV}: the LLVM ISA must be one of {', '.join(LLVM_ISAS)}, got {isa!r}")
+    cpu, features, _, set_target = _llvm_target()
+    have = features().decode().split(",")
+    need = "+avx512f" if isa == "avx512" else "+avx2"
+    if need not in have:
+        raise RuntimeError(f"{LLVM_ISA_ENV}={isa}: this CPU ({cpu_model()}) has no {need[1:]}")
+    if isa == "avx2":
+        have = [("-" + f[1:]) if f.startswith("+avx512") or f == "+evex512" else f for f in have]
+    set_target(cpu(), ",".join(have).encode(), LLVM_ISAS[isa])
+
+
+def apply_llvm_isa_from_env() -> None:
+    """Honour LAYERBVH_LLVM_ISA (unset: the CPU's own); called once when layerbvh is imported."""
+    isa = os.environ.get(LLVM_ISA_ENV)
+    if isa:
+        try:
+            set_llvm_isa(isa)
+        except (ValueError, RuntimeError) as e:  # one line, not a traceback from an import
+            raise SystemExit(f"layerbvh: {e}") from None
+
+
 def _llvm_target():
     dr.llvm.Float(0).index  # noqa: B018  (initialises the LLVM backend)
     try:

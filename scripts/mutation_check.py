@@ -407,6 +407,18 @@ MUTATIONS = (
              '    side = {} if stock_side is None else {"stock": stock_side}\n',
              '    side = {} if stock_side is None else {"stock": stock_side, "ours": stock_side}\n',
              ("tests/runtime/test_prb.py::test_gradient_statistical_step_and_its_negative_control",)),
+    Mutation("llvm_isa_env_ignored", "LAYERBVH_LLVM_ISA is read but not applied: the kernels compile for the "
+             "CPU's own ISA, so a test meant to run as on an AVX2 CPU runs as on this one (issue 64)",
+             "layerbvh/backend.py",
+             "            set_llvm_isa(isa)\n",
+             "            LLVM_ISAS[isa]\n",
+             ("tests/engine/test_engine_isa.py::test_avx2_kernels_trace_the_same_hits",)),
+    Mutation("llvm_avx2_keeps_avx512", "LAYERBVH_LLVM_ISA=avx2 narrows the packets to 8 lanes but leaves the "
+             "AVX-512 features on (another rounding than an AVX2 CPU's)",
+             "layerbvh/backend.py",
+             "    if isa == \"avx2\":\n        have = ",
+             "    if False:\n        have = ",
+             ("tests/engine/test_engine_isa.py::test_avx2_kernels_trace_the_same_hits",)),
 )
 
 

@@ -13,6 +13,13 @@ set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$root/scripts/bootstrap.sh" --test
 cd "$root"
+# The machine first (issue 64): a failure reads against its CPU, its SIMD and Dr.Jit's lanes.
+.venv/bin/python -c 'import layerbvh as L, os
+f = open("/proc/cpuinfo").read().split() if os.path.exists("/proc/cpuinfo") else []
+simd = "AVX-512" if "avx512f" in f else "AVX2" if "avx2" in f else "neither AVX2 nor AVX-512"
+isa = os.environ.get(L.backend.LLVM_ISA_ENV)
+print(f"test.sh: CPU {L.cpu_model()}, {os.cpu_count()} cores, {simd}; Dr.Jit LLVM {L.llvm_isa()}, "
+      f"{L.llvm_vector_width()} lanes" + (f" ({L.backend.LLVM_ISA_ENV}={isa})" if isa else ""))' || true
 SUITE_LIMIT_S="${SUITE_LIMIT_S:-2400}"
 running="$(mktemp)"
 trap 'rm -f "$running"' EXIT

@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import functools
+import json
 import math
+import os
 import warnings
 
 import numpy as np
@@ -129,10 +131,28 @@ def same_seed_verdict(ref, test, tol: float = SAME_SEED_TOL, min_frac: float = S
     within = d.max(-1) <= tol * np.maximum(1.0, np.abs(r.astype(np.float64)).max(-1))
     # (The mean |stock|: a gradient image is signed.)
     frac, mean_abs, mean_ref = float(np.mean(within)), float(d.mean()), float(np.abs(r.astype(np.float64)).mean())
-    return {"passed": frac >= min_frac and mean_abs <= max_mean_rel * mean_ref,
-            "criterion": f"same seed: >= {100 * min_frac:g}% of pixels within {tol:g} x max(1, |stock|) in every "
-                         f"channel and mean |diff| <= {max_mean_rel:g} x mean pixel",
-            "values": {"frac_within": frac, "mean_abs": mean_abs, "mean_ref": mean_ref, "max_abs": float(d.max())}}
+    out = {"passed": frac >= min_frac and mean_abs <= max_mean_rel * mean_ref,
+           "criterion": f"same seed: >= {100 * min_frac:g}% of pixels within {tol:g} x max(1, |stock|) in every "
+                        f"channel and mean |diff| <= {max_mean_rel:g} x mean pixel",
+           "values": {"frac_within": frac, "mean_abs": mean_abs, "mean_ref": mean_ref, "max_abs": float(d.max())}}
+    _log("same_seed", passed=bool(out["passed"]), min_frac=min_frac, max_mean_rel=max_mean_rel, **out["values"])
+    return out
+
+
+VERDICT_LOG_ENV = "LAYERBVH_VERDICT_LOG"
+
+
+def _log(kind: str, **values) -> None:
+    """With LAYERBVH_VERDICT_LOG set, append `values` and the test that asked
+    (PYTEST_CURRENT_TEST, inherited by a test's subprocesses) to that file as a JSON line:
+    scripts/cpu_margins.py reads it to show how near its threshold each same-seed check and
+    verdict of the suite sits on this CPU (issue 64). One O_APPEND write per line, so processes
+    may share the file."""
+    log = os.environ.get(VERDICT_LOG_ENV)
+    if log:
+        rec = {"kind": kind, "test": os.environ.get("PYTEST_CURRENT_TEST", "").rsplit(" (", 1)[0], **values}
+        with open(log, "a") as fh:
+            fh.write(json.dumps(rec) + "\n")
 
 
 def compare_images_with_flip_map(ref, test) -> tuple[dict, np.ndarray]:
@@ -293,11 +313,10 @@ def z_test_passed(pass_fraction: float) -> bool:
 
 def verdict_label(same_seed_passed: bool, z_pass_fraction: float | None) -> str:
     """The two-step verdict's label (z_pass_fraction None: no statistical step was run)."""
-    if same_seed_passed:
-        return SAME_PATHS
-    if z_pass_fraction is None:
-        return SAME_SEED_DIFFERS
-    return AGREES if z_test_passed(z_pass_fraction) else DIFFERS
+    label = (SAME_PATHS if same_seed_passed else SAME_SEED_DIFFERS if z_pass_fraction is None
+             else AGREES if z_test_passed(z_pass_fraction) else DIFFERS)
+    _log("verdict", label=label, z_pass_fraction=z_pass_fraction, z_min_pass=1.0 - Z_MAX_FAIL_FRAC)
+    return label
 
 
 def verdict_passed(label: str) -> bool:
