@@ -30,9 +30,16 @@ def test_instanced_scene_matches_stock(name, traversal, tmp_path):
     # test (Embree's and ours) are noisy to ~1e-3; same-seed paths then drift apart after a few
     # bounces. A flattened copy (no instances) drifts alike: 96.5% of pixels within 1e-3 at
     # max_depth 10, 95.8% instanced (README, "Instances"); the Z-test below covers full depth.
+    #
+    # Even at max_depth 3 one pixel of 1024 falls outside the same-seed tolerance, on AVX-512 and
+    # with LAYERBVH_LLVM_ISA=avx2 alike (docs/cpu_margins/table.json): the default criterion
+    # (99.9%) has room for exactly that one, and another CPU's rounding may move a second (issue
+    # 64). 1% of pixels leaves room for ten; the mean criterion (1e-4 of the mean pixel, measured
+    # 0.23 of it) is what a real error (a 2% albedo: every pixel) fails by far.
     params = {"max_depth": 3} if name == "instanced_bunnies" else {}
+    room = {"min_frac": 0.99} if name == "instanced_bunnies" else {}
     r = testing.assert_matches_stock(SCENES / f"{name}.xml", spp=8, res=(32, 32), traversal=traversal,
-                                     diff_dir=tmp_path, **params)
+                                     diff_dir=tmp_path, **room, **params)
     assert r.mean_ref > 0.01, "the scene should not render black"
 
 

@@ -38,10 +38,14 @@ def _ours(traversal: str) -> dict | None:
     ("prbvolpath", "cbox", "layer_sorted"), ("prbvolpath", "bunny_box", "auto"), ("prbvolpath", "paper_mix", "per_ray")])
 def test_primal_same_seed_as_stock(scene_as, integrator, name, traversal):
     """Primal mode, same seed: every draw in stock's order, every query ours, so the image
-    equals stock's to float noise (on paper_mix 99.96% of pixels, where a path meeting a
-    shared edge may take the other triangle)."""
+    equals stock's to float noise. On paper_mix a path meeting a shared edge of the glass may
+    take the other triangle: prb there leaves one pixel of 1024 outside the tolerance on AVX-512
+    and with LAYERBVH_LLVM_ISA=avx2 (docs/cpu_margins/table.json), exactly the default
+    criterion's room, so another CPU may fail it by one pixel (issue 64): paper_mix gets 1% (ten
+    pixels), and the mean criterion (1e-4 of the mean pixel; measured 0.02-0.12 of it) stays."""
+    room = {"min_frac": 0.99} if name == "paper_mix" else {}
     r = testing.assert_matches_stock(_as(scene_as, name, integrator), spp=8, res=(32, 32), traversal=traversal,
-                                     ours_props=_ours(traversal))
+                                     ours_props=_ours(traversal), **room)
     assert r.compared_as == integrator and r.mean_ref > 0.01, (r.compared_as, r.summary())
     if traversal.startswith("layer_"):
         assert r.ours_stats.loop == "wavefront" and r.ours_stats.wavefront_steps > r.ours_stats.queries
