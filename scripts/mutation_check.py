@@ -132,9 +132,11 @@ MUTATIONS = (
              (MB + "test_same_seed_matches_stock[cbox-per_ray]",)),
     Mutation("z_test_without_repeats", "the independent-seed test takes a sample's variance for the variance of "
              "the pixel's mean (too wide: it loses its power)",
-             "plugin/ab/metrics.py",
-             "va.astype(np.float64) / na, vb.astype(np.float64) / nb",
-             "va.astype(np.float64), vb.astype(np.float64)",
+             "plugin/ab/hypotheses.py",
+             "                va = _region_sums(_split(a.var, panels)[p] / a.n, labels, k)\n"
+             "                vb = _region_sums(_split(b.var, panels)[p] / b.n, labels, k)\n",
+             "                va = _region_sums(_split(a.var, panels)[p], labels, k)\n"
+             "                vb = _region_sums(_split(b.var, panels)[p], labels, k)\n",
              (MB + "test_z_test_catches_a_2_percent_albedo_change",)),
     Mutation("edge_refinement_off", "the double-precision recomputation of unsure edge functions never runs "
              "(error bound 0)",
@@ -153,8 +155,8 @@ MUTATIONS = (
     Mutation("verdict_always_agrees", "the verdict's statistical step is ignored: diverged same-seed paths always "
              "'agree within noise'",
              "plugin/ab/metrics.py",
-             "    return AGREES if z_test_passed(z_pass_fraction) else DIFFERS\n",
-             "    return AGREES\n",
+             "    label = (DIFFERS if rejected else",
+             "    label = (DIFFERS if False else",
              ("tests/tools/test_verdict.py::test_a_real_difference_differs[max_depth]",)),
     Mutation("replay_ignores_culling", "the locality replay takes every popped entry, however far (the kernel culls "
              "those beyond the closest hit): its trace no longer follows the kernel",
@@ -283,8 +285,8 @@ MUTATIONS = (
     Mutation("adjoint_moments_per_sample", "the verdict's second step takes an adjoint integrator's per-render "
              "variance for a per-sample one (far too strict: equal estimators fail)",
              "plugin/ab/verdict.py",
-             "    return v.mean(0), v.var(0, ddof=1), MOMENT_RENDERS\n",
-             "    return v.mean(0), v.var(0, ddof=1), spp\n",
+             "    return Moments(v.mean(0), v.var(0, ddof=1), MOMENT_RENDERS, renders=v)\n",
+             "    return Moments(v.mean(0), v.var(0, ddof=1), spp)\n",
              ("tests/runtime/test_ptracer.py::test_ptracer_statistical_step_catches_a_2_percent_albedo_change",)),
     Mutation("prb_forward_clears_parameter_gradients", "forward-mode replay in the wavefront loop uses Dr.Jit's "
              "default flags, which clear the parameters' gradients after the first vertex",
@@ -419,6 +421,24 @@ MUTATIONS = (
              "    if isa == \"avx2\":\n        have = ",
              "    if False:\n        have = ",
              ("tests/engine/test_engine_isa.py::test_avx2_kernels_trace_the_same_hits",)),
+    Mutation("verdict_without_paired_tests", "the verdict leaves out the paired same-seed tests: an \"agrees\" "
+             "rules out only what the independent-seed film sees (issue 55)",
+             "plugin/ab/verdict.py",
+             "        paired = hypotheses.paired(stock_img, ours_img, reach,",
+             "        paired = [] and hypotheses.paired(stock_img, ours_img, reach,",
+             ("tests/tools/test_verdict.py::test_diverged_paths_of_a_full_depth_scene_agree",)),
+    Mutation("paired_variance_ignores_shared_samples", "the paired test's variance leaves out the covariance of "
+             "pixels that share samples through the film's filter (too narrow: false alarms)",
+             "plugin/ab/hypotheses.py",
+             "            se.append(np.sqrt(_hac(d, labels, k, reach)))\n",
+             "            se.append(np.sqrt(_hac(d, labels, k, 0)))\n",
+             ("tests/tools/test_hypotheses.py::test_paired_false_alarms_stay_below_alpha[1]",)),
+    Mutation("correction_per_test_not_per_family", "each test gets its level's whole share of alpha instead of "
+             "a part of it (no correction for the number of tests: false alarms)",
+             "plugin/ab/hypotheses.py",
+             "        return ALPHA * SHARES[level] / max(1, self.counts[level])\n",
+             "        return ALPHA * SHARES[level]\n",
+             ("tests/tools/test_hypotheses.py::test_one_correction_over_every_test",)),
 )
 
 

@@ -11,7 +11,7 @@ import mitsuba
 import numpy as np
 
 import layerbvh
-from layerbvh_mitsuba.ab import metrics
+from layerbvh_mitsuba.ab import hypotheses, metrics
 from layerbvh_mitsuba.ab.gradient import GradientComparison, check_gradient, compare_gradients
 from layerbvh_mitsuba.ab.page import split_share
 from layerbvh_mitsuba.ab.render import TimedRender, load_integrator, load_scene, scene_spp, timed_render
@@ -304,7 +304,7 @@ def compare(mi, s: CompareSettings, scene=None) -> Comparison:
     ours_img, bad_ours = _finite(ours_img)
     if s.statistical_step:
         verdict = judge(mi, scene_path, stock_img, ours_img, spp, path.stock_inner(), ours_all, dict(s.params),
-                        s.ours_modify, film, path.integrator if stokes else None)
+                        s.ours_modify, film, path.integrator if stokes else None, hypotheses.reach(scene), s.seed)
     else:
         verdict = same_seed_only(stock_img, ours_img)
     w, h = film

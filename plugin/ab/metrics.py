@@ -272,14 +272,16 @@ def pixel_test(ref_mean, ref_var, test_mean, test_var, n_ref, n_test, alpha: flo
 # third-party table): 1. the same-seed criterion above; where it holds, the traversal left every
 # path as stock's ("same paths"). 2. Otherwise same-seed paths diverged somewhere (after many
 # bounces a 1e-4 relative difference in t, or the other of two coplanar triangles, moves a path)
-# and only the estimator can be judged: independent seeds, per-pixel Welch t-test with Šidák
-# correction on a downsampled film (plugin/ab/verdict.py renders it).
+# and the estimators are judged by a family of tests of equal means: paired tests on the
+# same-seed images and independent-seed tests on a downsampled film, over the image, its tiles
+# and its pixels, under one correction (plugin/ab/hypotheses.py says why each is valid;
+# plugin/ab/verdict.py renders them). Every verdict states the bias its tests would catch (MDE).
 SAME_PATHS = "same paths"
 AGREES = "agrees within Monte Carlo noise"
 DIFFERS = "differs beyond noise"
 SAME_SEED_DIFFERS = "differs (same seed; no independent-seed test run)"
-Z_ALPHA = 0.01        # family-wise false-alarm rate over the film (Šidák-corrected per pixel)
-Z_MAX_SIDE = 32       # the test's film: the scene's aspect, its longer side at most this many pixels
+Z_ALPHA = 0.01        # family-wise false-alarm rate of one verdict (hypotheses.ALPHA)
+Z_MAX_SIDE = 32       # the independent-seed film: the scene's aspect, its longer side at most this many pixels
 # Samples per pixel of the test's one render per side (each pixel's mean and per-sample variance).
 Z_MIN_SPP = 16  # (Welch with ~30 degrees of freedom at the least; the compare's own budget first)
 Z_MAX_SAMPLES = 1 << 20  # camera samples per side at most: one traced batch (batch_rays' default)
@@ -287,10 +289,6 @@ Z_MAX_SAMPLES = 1 << 20  # camera samples per side at most: one traced batch (ba
 # embree control, ours and a counted pass; the test renders stock and ours once each at half as
 # many samples, so it takes well under the compare's own time.
 Z_SAMPLE_SHARE = 0.5
-# Pixels allowed to fail: path-traced pixel means are heavy-tailed (fireflies) at finite spp, so
-# a t-test's tails are a little too light for them; a real difference fails many pixels at once
-# (tests/tools/test_verdict.py: a dropped shape, another albedo or max_depth).
-Z_MAX_FAIL_FRAC = 0.01
 
 
 def z_test_film(width: int, height: int) -> tuple[int, int]:
@@ -307,15 +305,12 @@ def z_test_spp(width: int, height: int, samples: int) -> int:
     return int(max(Z_MIN_SPP, min(Z_MAX_SAMPLES // (zw * zh), round(Z_SAMPLE_SHARE * samples / (zw * zh)))))
 
 
-def z_test_passed(pass_fraction: float) -> bool:
-    return pass_fraction >= 1.0 - Z_MAX_FAIL_FRAC
-
-
-def verdict_label(same_seed_passed: bool, z_pass_fraction: float | None) -> str:
-    """The two-step verdict's label (z_pass_fraction None: no statistical step was run)."""
-    label = (SAME_PATHS if same_seed_passed else SAME_SEED_DIFFERS if z_pass_fraction is None
-             else AGREES if z_test_passed(z_pass_fraction) else DIFFERS)
-    _log("verdict", label=label, z_pass_fraction=z_pass_fraction, z_min_pass=1.0 - Z_MAX_FAIL_FRAC)
+def verdict_label(same_seed_passed: bool, rejected: bool | None) -> str:
+    """The verdict's label: `rejected`, whether a test of the family rejected equal means (None:
+    no family decided, step 1 alone)."""
+    label = (DIFFERS if rejected else SAME_PATHS if same_seed_passed
+             else SAME_SEED_DIFFERS if rejected is None else AGREES)
+    _log("verdict", label=label, same_seed_passed=same_seed_passed, rejected=rejected)
     return label
 
 

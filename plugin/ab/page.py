@@ -239,28 +239,37 @@ def _stats_table(tr: dict, stats_pass: dict | None) -> str:
 
 
 def _verdict_html(v: dict) -> str:
-    """The two-step verdict (verdict.Verdict.as_dict): its label, what was tested, how long."""
+    """The verdict (verdict.Verdict.as_dict): its label with what it rules out (the MDE), what was
+    tested, how long."""
     esc = html.escape
     passed = bool(v.get("passed"))
     label = str(v.get("label", ""))
+    fam = v.get("hypotheses") or {}
     headline = {"same paths": "matches stock: same paths",
                 "agrees within Monte Carlo noise": "matches stock within Monte Carlo noise"}.get(
         label, f"differs from stock: {label}")
+    if passed and fam and not fam.get("rejected"):
+        headline += f": {fam.get('mde_text', '')}"
+    step1 = f"Step 1, same seed: {_g(v.get('values', {}).get('frac_within'), 'share')} of pixels within tolerance"
     z = v.get("statistical")
+    parts = [step1 + (", so same-seed paths diverged." if not v.get("same_seed", {}).get("passed") else ".")]
+    tests = fam.get("tests", {})
+    if tests:
+        kinds = sorted({k for lv in tests.values() for k in lv.get("kinds", [])})
+        parts.append(f"Tests of equal means ({esc(', '.join(kinds))}): "
+                     + "; ".join(f"{lv} level {t['count']} tests at alpha {_g(t['alpha_each'])} each"
+                                 for lv, t in tests.items() if t.get("count"))
+                     + f"; equivalence margin {_g(fam.get('margin'))} of |stock|.")
     if z:
         w, h = z.get("resolution", ["?", "?"])
-        tested = (f"Step 1, same seed: {_g(v.get('values', {}).get('frac_within'), 'share')} of pixels within "
-                  f"tolerance, so same-seed paths diverged. Step 2, independent seeds: stock and ours rendered "
-                  f"once each at {z.get('spp')} spp on a {w}×{h} film, "
-                  f"{z.get('failing_pixels')} of {z.get('pixels')} pixels fail a {esc(str(z.get('test', '')))} "
-                  f"(p below {_g(z.get('threshold'))}; at most {_g(z.get('max_fail_frac'), 'share')} may); "
-                  f"took {_g(z.get('seconds'))} s.")
-    else:
-        tested = f"Step 1, {esc(str(v.get('summary', '')))}."
-        if label != "same paths":
-            tested += " No independent-seed test was run."
+        parts.append(f"Independent seeds: stock and ours rendered once each at {z.get('spp')} spp on a {w}×{h} "
+                     f"film ({esc(str(z.get('test', '')))}); took {_g(z.get('seconds'))} s.")
+    if fam:
+        parts.append(f"Result: {esc(str(fam.get('summary', '')))}.")
+    elif label != "same paths":
+        parts.append("No test of equal means was run.")
     return (f'<div class="verdict {"pass" if passed else "fail"}" id="verdict" data-passed="{str(passed).lower()}" '
-            f'data-label="{esc(label)}"><b>{esc(headline)}</b><div class="small">{tested}</div>'
+            f'data-label="{esc(label)}"><b>{esc(headline)}</b><div class="small">{" ".join(parts)}</div>'
             f'<div class="small">criterion: {esc(str(v.get("criterion", "")))}</div></div>')
 
 

@@ -13,7 +13,7 @@ from layerbvh_mitsuba.ab import metrics, page
 from layerbvh_mitsuba.ab.compare import Comparison
 from layerbvh_mitsuba.ab.gradient import GradientComparison
 from layerbvh_mitsuba.ab.render import write_exr
-from layerbvh_mitsuba.ab.verdict import StatisticalStep, Verdict, same_seed_only
+from layerbvh_mitsuba.ab.verdict import Verdict, same_seed_only
 from layerbvh_mitsuba.atomic import atomic_folder
 
 # diff.png shows the largest channel of |ours - stock| per pixel, scaled so that its 99th
@@ -109,7 +109,7 @@ def _write_gradient(tmp: Path, g: GradientComparison | None) -> list:
 
 
 def _write_all(tmp: Path, stock: np.ndarray, ours: np.ndarray, rep: dict, flip_map: np.ndarray,
-               heatmaps: dict, statistical: StatisticalStep | None, gradient: GradientComparison | None = None) -> None:
+               heatmaps: dict, judged: Verdict | None, gradient: GradientComparison | None = None) -> None:
     write_exr(tmp / "stock.exr", stock)
     write_exr(tmp / "ours.exr", ours)
     _write_bytes(tmp / "stock.png", to_png_bytes(metrics.tonemap_srgb(stock)))
@@ -121,19 +121,20 @@ def _write_all(tmp: Path, stock: np.ndarray, ours: np.ndarray, rep: dict, flip_m
                                                            f"largest channel of |ours − stock| (linear radiance); the "
                                                            f"top is its {DIFF_PERCENTILE:g}th percentile")),
             "ꟻLIP": ("flip.png", page.colour_bar("magma", "0", "1", "ꟻLIP error per pixel (0 = identical)"))}
-    if statistical is not None:
-        # The statistical step's film, each of its pixels shown as a block of the image's size.
-        fail = ~statistical.passing
+    family = None if judged is None else judged.family
+    if family is not None:
+        # Where the verdict's tests reject equal means (hypotheses.Family.rejection_map), over the stock image.
         h, w = stock.shape[:2]
-        ys = np.minimum(np.arange(h) * fail.shape[0] // h, fail.shape[0] - 1)
-        xs = np.minimum(np.arange(w) * fail.shape[1] // w, fail.shape[1] - 1)
-        big = fail[ys][:, xs]
-        colours = np.where(big[..., None], np.array([0.85, 0.1, 0.1]), 0.25 + 0.5 * metrics.tonemap_srgb(stock))
+        where = family.rejection_map(h, w)
+        colours = 0.25 + 0.5 * metrics.tonemap_srgb(stock)
+        colours = np.where((where == 1)[..., None], np.array([0.95, 0.55, 0.1]), colours)
+        colours = np.where((where == 2)[..., None], np.array([0.85, 0.1, 0.1]), colours)
         _write_bytes(tmp / "z_fail.png", to_png_bytes(colours))
-        zw, zh = statistical.resolution
-        maps["pixels that differ beyond noise"] = (
-            "z_fail.png", page.legend(f"red: the {statistical.failing_pixels} of {statistical.pixels} pixels of the "
-                                      f"{zw}×{zh} independent-seed test that fail it; grey: the stock image"))
+        n = len(family.rejections)
+        maps["where the tests reject equal means"] = (
+            "z_fail.png", page.legend(f"{n} of {sum(family.counts.values())} tests reject; orange: a rejected "
+                                      f"tile (or, everywhere, the image mean), red: a rejected pixel of the "
+                                      f"independent-seed film; grey: the stock image"))
     heat = []
     for name, img in sorted(heatmaps.items(), key=lambda kv: list(HEATMAP_TITLES).index(kv[0])
                             if kv[0] in HEATMAP_TITLES else len(HEATMAP_TITLES)):
@@ -166,7 +167,7 @@ def write_report(out_dir, stock_img, ours_img, info: dict, heatmaps: dict | None
     judged = judged or same_seed_only(stock, ours)
     rep = json_safe({**dict(info), "metrics": m, "verdict": judged.as_dict()})
     with atomic_folder(out_dir, REPORT_MARKER) as tmp:
-        _write_all(tmp, stock, ours, rep, flip_map, heatmaps or {}, judged.statistical, gradient)
+        _write_all(tmp, stock, ours, rep, flip_map, heatmaps or {}, judged, gradient)
     return rep
 
 

@@ -1,19 +1,24 @@
-"""The two-step verdict of an A/B comparison: same seed within tolerance (same paths), else an independent-seed per-pixel test on a downsampled film (agrees within Monte Carlo noise, or differs beyond it)."""
+"""The verdict of an A/B comparison: the same-seed criterion (same paths), the paired same-seed tests and, where paths diverged, the independent-seed renders and tests (hypotheses.py), judged as one family (agrees within Monte Carlo noise, or differs beyond it)."""
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from dataclasses import dataclass, field
 
 import drjit as dr
 import numpy as np
 
-from layerbvh_mitsuba.ab import metrics
+from layerbvh_mitsuba.ab import hypotheses, metrics
+from layerbvh_mitsuba.ab.hypotheses import Moments
 from layerbvh_mitsuba.ab.render import load_integrator, load_scene
 from layerbvh_mitsuba.runtime.scene_geometry import sensor_medium
 from layerbvh_mitsuba.runtime.stats import RenderStats
 
-# Seeds of the statistical step's two renders: apart, so stock's and ours' samples are independent.
+# Seeds of the statistical step's two renders at compare seed 0: apart, so stock's and ours'
+# samples are independent; compare seed s moves both by SEED_STRIDE x s (mod 2^32, `independent_seeds`),
+# so the verdicts of different compare seeds are independent too (scripts/verdict_power.py).
 STOCK_SEED, OURS_SEED = 1000, 5000
+SEED_STRIDE = 10_000
 # Where a pixel's samples cannot be read one by one, its moments come from this many independent
 # renders, each a sample of the pixel's mean: an adjoint integrator (ptracer) splats its light
 # paths anywhere on the film, and a gradient image (ab/gradient.py) is only what a render returns.
@@ -22,69 +27,96 @@ MOMENT_RENDERS = 16
 
 @dataclass
 class StatisticalStep:
-    """What step 2 ran and found."""
+    """What the independent-seed renders ran and found: their tests (hypotheses.independent)."""
 
-    resolution: tuple[int, int]  # its film (W, H)
+    resolution: tuple[int, int]  # its film (W, H), per panel
     spp: int                     # samples per pixel, one render per side
-    pass_fraction: float
-    pixels: int
-    min_p: float
-    threshold: float             # per-pixel p-value threshold (Šidák)
+    tests: list = field(repr=False)  # [hypotheses.Tests] at each level
     seconds: float
-    passing: np.ndarray = field(repr=False)  # (H, W) bool
+    panels: tuple[str, ...] = ("",)
     ours_stats: RenderStats | None = field(default=None, repr=False)  # ours' integrator's last_stats
 
     @property
-    def failing_pixels(self) -> int:
-        return int(self.pixels - round(self.pass_fraction * self.pixels))
+    def family(self) -> hypotheses.Family:
+        """These tests alone under the verdict's correction (where no paired test joins them)."""
+        return hypotheses.Family(self.tests, self.panels)
 
-    def as_dict(self) -> dict:
-        return {"resolution": list(self.resolution), "spp": self.spp, "pass_fraction": self.pass_fraction,
-                "failing_pixels": self.failing_pixels, "pixels": self.pixels, "min_p": self.min_p,
-                "threshold": self.threshold, "alpha": metrics.Z_ALPHA, "max_fail_frac": metrics.Z_MAX_FAIL_FRAC,
-                "seconds": self.seconds,
-                "test": "per-pixel Welch t-test of equal means (per-sample variances), Šidák-corrected over the pixels"}
+    @property
+    def passed(self) -> bool:
+        return not self.family.rejected
+
+    @property
+    def pixels(self) -> int:
+        return self.resolution[0] * self.resolution[1] * len(self.panels)
+
+    @property
+    def failing_pixels(self) -> int:
+        return self.family.failing_pixels()
+
+    def as_dict(self, family: hypotheses.Family | None = None) -> dict:
+        f = family or self.family
+        return {"resolution": list(self.resolution), "spp": self.spp, "pixels": self.pixels,
+                "failing_pixels": f.failing_pixels(), "panels": list(self.panels), "seconds": self.seconds,
+                "test": "Welch test of equal means per pixel, per tile and over the image (per-sample variances; "
+                        "over repeated renders where the samples are renders)"}
 
 
 @dataclass
 class Verdict:
-    """The verdict of one comparison (report.json's "verdict" is `as_dict`)."""
+    """The verdict of one comparison (report.json's "verdict" is `as_dict`): step 1's same-seed
+    criterion and the family of tests (hypotheses.Family) that decides where it fails and states
+    the power (MDE) of every verdict."""
 
     label: str                         # metrics.SAME_PATHS | AGREES | DIFFERS | SAME_SEED_DIFFERS
     same_seed: dict                    # metrics.same_seed_verdict
     statistical: StatisticalStep | None = None
+    family: hypotheses.Family | None = None
 
     @property
     def passed(self) -> bool:
         return metrics.verdict_passed(self.label)
 
+    def mde(self) -> dict | None:
+        """hypotheses.Family.power: the relative bias caught with 95% probability (None: no family ran)."""
+        return None if self.family is None else self.family.power()
+
     def summary(self) -> str:
         v = self.same_seed["values"]
         within = f"{100 * v['frac_within']:.2f}% of pixels within {metrics.SAME_SEED_TOL:g}"
-        if self.label == metrics.SAME_PATHS:
-            return f"same seed: {within}, mean |diff| {v['mean_abs']:.3g} (mean pixel {v['mean_ref']:.3g})"
+        tail = "" if self.family is None else f"; {self.family.summary()}"
+        if self.same_seed["passed"]:
+            return f"same seed: {within}, mean |diff| {v['mean_abs']:.3g} (mean pixel {v['mean_ref']:.3g}){tail}"
         diverged = f"same-seed paths diverged: {within}"
         z = self.statistical
-        if z is None:
-            return diverged
-        w, h = z.resolution
-        return (f"{diverged}; independent seeds: {z.failing_pixels} of {z.pixels} pixels differ beyond noise "
-                f"({w}x{h}, {z.spp} spp per side, {z.seconds:.1f} s)")
+        if z is not None:
+            w, h = z.resolution
+            tail += f" (independent seeds: {w}x{h}, {z.spp} spp per side, {z.seconds:.1f} s)"
+        return diverged + tail
 
     def as_dict(self) -> dict:
         v = self.same_seed
         return {"label": self.label, "passed": self.passed, "summary": self.summary(),
-                "criterion": (f"1. {v['criterion']}; 2. otherwise independent seeds agree: at most "
-                              f"{100 * metrics.Z_MAX_FAIL_FRAC:g}% of pixels fail a per-pixel Welch t-test at "
-                              f"family-wise alpha {metrics.Z_ALPHA:g} (Šidák)"),
+                "mde": self.mde(),
+                "criterion": (f"1. {v['criterion']}; 2. otherwise no test of the family rejects equal means "
+                              f"(paired same-seed and independent-seed tests of the image, its tiles and pixels, "
+                              f"equivalence margin {hypotheses.MARGIN:g} of |stock|, family-wise alpha "
+                              f"{hypotheses.ALPHA:g}, weighted Bonferroni)"),
                 "same_seed": {"passed": v["passed"], **v["values"]}, "values": v["values"],
-                "statistical": None if self.statistical is None else self.statistical.as_dict()}
+                "hypotheses": None if self.family is None else self.family.as_dict(),
+                "statistical": None if self.statistical is None else self.statistical.as_dict(self.family)}
 
 
 def same_seed_only(stock: np.ndarray, ours: np.ndarray) -> Verdict:
     """Step 1 alone (no scene at hand to render step 2 from)."""
     s = metrics.same_seed_verdict(stock, ours)
     return Verdict(metrics.verdict_label(s["passed"], None), s)
+
+
+def independent_seeds(seed: int) -> tuple[int, int]:
+    """(stock, ours) seeds of the independent-seed renders of a compare at `seed`, each with room
+    for MOMENT_RENDERS consecutive render seeds below 2^32."""
+    room = (1 << 32) // MOMENT_RENDERS
+    return tuple((base + SEED_STRIDE * int(seed)) % room for base in (STOCK_SEED, OURS_SEED))
 
 
 def load_modified(mi, scene_path, res, params: dict | None, modify):
@@ -97,7 +129,7 @@ def load_modified(mi, scene_path, res, params: dict | None, modify):
     return scene
 
 
-def pixel_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarray, np.ndarray, int]:
+def pixel_moments(mi, scene, integrator, spp: int, seed: int) -> Moments:
     """Per-pixel mean, the variance of one sample, and the samples per pixel: for an adjoint
     integrator from MOMENT_RENDERS renders of spp / MOMENT_RENDERS each (`_render_moments`),
     else of `integrator`'s estimate over `spp` samples per pixel,
@@ -125,7 +157,7 @@ def pixel_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarra
     value = weight * L
     dr.eval(value)
     v = np.stack([np.asarray(value[c], np.float64) for c in range(3)], -1).reshape(h, w, spp, 3)
-    return v.mean(2), v.var(2, ddof=1), spp
+    return Moments(v.mean(2), v.var(2, ddof=1), spp)
 
 
 def _stokes(integrator) -> bool:
@@ -134,7 +166,7 @@ def _stokes(integrator) -> bool:
     return integrator.class_name() == "StokesIntegrator"
 
 
-def _render_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndarray, np.ndarray, int]:
+def _render_moments(mi, scene, integrator, spp: int, seed: int) -> Moments:
     """Per-pixel mean and variance over MOMENT_RENDERS independent renders (seeds `seed` x
     MOMENT_RENDERS + r) of spp / MOMENT_RENDERS samples per pixel each; each render's pixel is
     one sample of its mean. RGB; a stokes render's five panels side by side."""
@@ -142,15 +174,15 @@ def _render_moments(mi, scene, integrator, spp: int, seed: int) -> tuple[np.ndar
     judged = metrics.stokes_panels if _stokes(integrator) else (lambda img: img[..., :3])
     v = np.stack([judged(np.array(mi.render(scene, integrator=integrator, spp=per, seed=seed * MOMENT_RENDERS + r),
                                   np.float64)) for r in range(MOMENT_RENDERS)])
-    return v.mean(0), v.var(0, ddof=1), MOMENT_RENDERS
+    return Moments(v.mean(0), v.var(0, ddof=1), MOMENT_RENDERS, renders=v)
 
 
 def independent_seed_test(mi, scene_path, res: tuple[int, int], spp: int, stock: dict, ours: dict,
-                          params: dict | None = None, ours_modify=None, wrap=None) -> StatisticalStep:
+                          params: dict | None = None, ours_modify=None, wrap=None, seed: int = 0) -> StatisticalStep:
     """Stock's estimator and ours (integrator dicts: `path` and `layerbvh`, or `direct` and
-    `layerbvh_direct`) at independent seeds (STOCK_SEED, OURS_SEED) on the scene at film
-    `res`, `spp` camera samples per pixel a side (`pixel_moments`), then metrics.pixel_test
-    (Welch, Šidák-corrected at metrics.Z_ALPHA). `ours_modify(params)` changes ours' copy of the
+    `layerbvh_direct`) at independent seeds (`independent_seeds(seed)`) on the scene at film
+    `res`, `spp` camera samples per pixel a side (`pixel_moments`), and their tests of equal
+    means over the image, its tiles and its pixels (hypotheses.independent). `ours_modify(params)` changes ours' copy of the
     scene (negative controls). `wrap(integrator)`: the scene's wrapper around each side where it
     changes what is judged (stokes: scene_integrator.PathSettings.integrator)."""
     t0 = time.perf_counter()
@@ -159,31 +191,55 @@ def independent_seed_test(mi, scene_path, res: tuple[int, int], spp: int, stock:
     stock = load_integrator(mi, stock)
     ours = load_integrator(mi, ours)
     wrapped = (lambda integ: integ) if wrap is None else (lambda integ: load_integrator(mi, wrap(integ)))
-    ref_mean, ref_var, n_ref = pixel_moments(mi, scene, wrapped(stock), spp, STOCK_SEED)
-    mean, var, n = pixel_moments(mi, ours_scene, wrapped(ours), spp, OURS_SEED)
-    summary, passing = metrics.pixel_test(ref_mean, ref_var, mean, var, n_ref, n, alpha=metrics.Z_ALPHA, student=True)
-    return StatisticalStep(resolution=tuple(res), spp=spp, pass_fraction=summary["pass_fraction"],
-                           pixels=summary["pixels"], min_p=summary["min_p"], threshold=summary["threshold"],
-                           seconds=time.perf_counter() - t0, passing=passing, ours_stats=ours.last_stats)
+    stock_int, ours_int = wrapped(stock), wrapped(ours)
+    stock_seed, ours_seed = independent_seeds(seed)
+    key = (str(scene_path), Path(scene_path).stat().st_mtime_ns, tuple(res), spp, stock_seed, repr(sorted((params or {}).items())), repr(stock),
+           None if wrap is None else repr(wrap(stock)))
+    a = _STOCK_MOMENTS.get(key)
+    if a is None:
+        a = _STOCK_MOMENTS[key] = pixel_moments(mi, scene, stock_int, spp, stock_seed)
+        while len(_STOCK_MOMENTS) > _STOCK_MOMENTS_KEPT:
+            _STOCK_MOMENTS.pop(next(iter(_STOCK_MOMENTS)))
+    b = pixel_moments(mi, ours_scene, ours_int, spp, ours_seed)
+    panels = metrics.STOKES_PANELS if _stokes(stock_int) else ("",)
+    return StatisticalStep(resolution=tuple(res), spp=spp, tests=hypotheses.independent(a, b, hypotheses.TILE, len(panels)),
+                           seconds=time.perf_counter() - t0, panels=panels, ours_stats=ours.last_stats)
+
+
+# Stock's independent-seed moments by (scene file, film, spp, seed, $parameters, integrator):
+# a negative control or a power study judges many of ours' variants against the same stock
+# side in one process. Stock's scene is never modified, so its moments are the same each time.
+_STOCK_MOMENTS: dict = {}
+_STOCK_MOMENTS_KEPT = 8
 
 
 def statistical_step(mi, scene_path, size: tuple[int, int], samples: int, stock: dict, ours: dict,
-                     params: dict | None = None, ours_modify=None, wrap=None) -> StatisticalStep:
+                     params: dict | None = None, ours_modify=None, wrap=None, seed: int = 0) -> StatisticalStep:
     """Step 2: `independent_seed_test` on the scene's film shrunk to metrics.z_test_film(size),
     about Z_SAMPLE_SHARE x `samples` camera samples per side (metrics.z_test_spp)."""
     return independent_seed_test(mi, scene_path, metrics.z_test_film(*size), metrics.z_test_spp(*size, samples),
-                                 stock, ours, params, ours_modify, wrap)
+                                 stock, ours, params, ours_modify, wrap, seed)
 
 
 def judge(mi, scene_path, stock_img: np.ndarray, ours_img: np.ndarray, spp: int, stock: dict,
           ours: dict, params: dict | None = None, ours_modify=None, film: tuple[int, int] | None = None,
-          wrap=None) -> Verdict:
-    """Both steps for same-seed images of `scene_path` (film of their size, or `film` (W, H)
-    where the images are panels of it, `spp` spp): step 2 runs only where step 1 fails, at about
-    the same number of samples per side (`wrap`: independent_seed_test)."""
+          wrap=None, reach: int | None = None, seed: int = 0) -> Verdict:
+    """The verdict on same-seed images of `scene_path` (film of their size, or `film` (W, H)
+    where the images are panels of it, `spp` spp). Step 1, the same-seed criterion; the paired
+    tests on these images (hypotheses.paired, `reach`: the film filter's, hypotheses.reach; None
+    or an adjoint integrator: not run) give every verdict its power. Where step 1 fails, the
+    independent-seed renders (`statistical_step`, at about the compare's samples per side;
+    `wrap`: independent_seed_test) join them in one family: "agrees" iff none rejects."""
     s = metrics.same_seed_verdict(stock_img, ours_img)
-    if s["passed"]:
-        return Verdict(metrics.SAME_PATHS, s)
     w, h = film or stock_img.shape[1::-1]
-    z = statistical_step(mi, scene_path, (w, h), w * h * spp, stock, ours, params, ours_modify, wrap)
-    return Verdict(metrics.verdict_label(False, z.pass_fraction), s, z)
+    names = metrics.STOKES_PANELS if stock_img.shape[1] == len(metrics.STOKES_PANELS) * w else ("",)
+    paired = []
+    if reach is not None and not isinstance(load_integrator(mi, stock), mi.AdjointIntegrator):
+        zw, _ = metrics.z_test_film(w, h)
+        paired = hypotheses.paired(stock_img, ours_img, reach, max(1, round(hypotheses.TILE * w / zw)), len(names))
+    if s["passed"]:
+        family = hypotheses.Family(paired, names)
+        return Verdict(metrics.verdict_label(True, family.rejected), s, family=family)
+    z = statistical_step(mi, scene_path, (w, h), w * h * spp, stock, ours, params, ours_modify, wrap, seed)
+    family = hypotheses.Family(paired + z.tests, names)
+    return Verdict(metrics.verdict_label(False, family.rejected), s, z, family)

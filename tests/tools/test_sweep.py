@@ -43,6 +43,8 @@ def test_compare_grid_matches_single_commands_and_resumes(tmp_path, capsys):
     assert [(Path(r["scene"]).name, r["config"]) for r in rows] == [
         (s.name, f"{t} K={layerbvh.DEFAULT_BRANCHING} h=8") for s in scenes for t in ("per_ray", "layer_sorted")]
     assert all(r["status"] == "ok" and r["verdict"] in (SAME_PATHS, AGREES) and r["host"] for r in rows), rows
+    # Each row states what its verdict rules out (issue 55): a relative bias of the image mean.
+    assert all(0 < r["mde_image"] < 0.05 for r in rows), [r["mde_image"] for r in rows]
     assert sorted(_last_run(out)["ran"]) == sorted(r["key"] for r in rows)
 
     # The same point as one `layerbvh compare` (its own process is not needed: same seed, same images).

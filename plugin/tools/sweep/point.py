@@ -69,7 +69,8 @@ def run_compare(point: dict, out: Path) -> dict:
     m, split = c.metrics, c.split() or {}
     return {"report": "compare/index.html", "spp": c.spp, "resolution": list(c.resolution),
             "triangles": c.counted.bvh.triangles if c.counted and c.counted.bvh else None,
-            "verdict": c.verdict.label, "within_1e-3": 1.0 - m["frac_pixels_over_1e-3"],
+            "verdict": c.verdict.label, "mde_image": (c.verdict.mde() or {}).get("image"),
+            "within_1e-3": 1.0 - m["frac_pixels_over_1e-3"],
             **{k: m[k] for k in ("rmse", "rel_mse", "flip_mean", "delta_e2000_mean", "delta_e2000_p95", "max_abs",
                                  "mean_abs")},
             "stock_s": c.stock_time.render_s, "control_s": c.control_time.render_s if c.control_time else None,

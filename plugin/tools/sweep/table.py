@@ -21,7 +21,7 @@ def short_name(name: str) -> str:
 COMMON = ("scene", "config", "spp", "resolution", "status", "error", "triangles", "host", "wall_s", "peak_rss_mib",
           "ran", "started", "key", "dir", "report")
 FIGURES = {
-    "compare": ("verdict", "within_1e-3", "rmse", "rel_mse", "flip_mean", "delta_e2000_mean", "delta_e2000_p95",
+    "compare": ("verdict", "mde_image", "within_1e-3", "rmse", "rel_mse", "flip_mean", "delta_e2000_mean", "delta_e2000_p95",
                 "max_abs", "mean_abs", "stock_s", "control_s", "ours_s", "ours_over_stock", "traversal_s", "loop_s",
                 "build_s", "compile_s", "calibration_s"),
     "converge": ("spp_reached", "seconds", "rel_mse", "flip", "delta_e2000", "slope_rel_mse_vs_spp",
@@ -37,7 +37,7 @@ FIGURES = {
 }
 # What summary.md and index.html show (results.csv/.json have every column).
 SHOWN = {
-    "compare": ("verdict", "within_1e-3", "rel_mse", "flip_mean", "stock_s", "ours_s", "ours_over_stock", "build_s"),
+    "compare": ("verdict", "mde_image", "within_1e-3", "rel_mse", "flip_mean", "stock_s", "ours_s", "ours_over_stock", "build_s"),
     "converge": ("spp_reached", "seconds", "rel_mse", "slope_rel_mse_vs_spp", "rel_mse_at_equal_time", "error_vs_base",
                  "time_vs_base", "build_s"),
     "bench": ("rays", "ray_count", "embree_mrays_s", "per_ray_mrays_s", "per_ray_h", "sorted_mrays_s", "sorted_h",
