@@ -83,7 +83,8 @@ class Verdict:
     def summary(self) -> str:
         v = self.same_seed["values"]
         within = f"{100 * v['frac_within']:.2f}% of pixels within {metrics.SAME_SEED_TOL:g}"
-        tail = "" if self.family is None else f"; {self.family.summary()}"
+        # (No test in the family: an adjoint integrator's same paths, judged by step 1 alone.)
+        tail = "" if self.family is None or not self.family.tests else f"; {self.family.summary()}"
         if self.same_seed["passed"]:
             return f"same seed: {within}, mean |diff| {v['mean_abs']:.3g} (mean pixel {v['mean_ref']:.3g}){tail}"
         diverged = f"same-seed paths diverged: {within}"

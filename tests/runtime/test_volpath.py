@@ -55,23 +55,30 @@ def test_mitsuba_volpathmis_scenes_match_stock_at_the_same_seed(name):
     assert r.ours_stats.features.media.on
 
 
+# The positive control and its negative control share these settings (issue 55: a control at
+# the test's own size, spp and depth).
+HETERO = dict(spp=16, res=(32, 32), traversal="per_ray")
+
+
 def test_heterogeneous_media_agree_with_stock_within_noise():
-    """test_hetero_sigmat (its albedo-grid twin: the reference test and the third-party table)."""
-    v = testing.verdict_vs_stock(_scene("test_hetero_sigmat"), spp=16, res=(32, 32), traversal="per_ray")
-    assert v.passed, v.summary
+    """test_hetero_sigmat (its albedo-grid twin: the reference test and the third-party table):
+    "agrees", and the verdict rules out a bias of 2% of the image mean (measured MDE 0.88%)."""
+    v = testing.verdict_vs_stock(_scene("test_hetero_sigmat"), **HETERO)
+    assert v.passed, v.summary()
+    assert v.mde()["image"] < 0.02, v.mde()
 
 
 def test_the_statistical_step_can_fail_on_a_medium():
-    """Negative control: ours on a copy of the scene whose medium only absorbs (albedo 0: the
-    in-scattered light lost). Measured: albedo x 0.8 (9% darker on average) and x 0.5 pass the
-    per-pixel step at 16 spp; media scenes are noisy per pixel, so the control runs at 64."""
+    """Negative control at the positive control's settings: ours on a copy of the scene whose
+    medium's albedo is 2% lower. Measured: x0.98 and x0.99 both "differ" (the paired image-mean
+    and tile tests, z 9.5 and 5.6); before the paired tests (issue 55) this control needed 64 spp
+    and albedo 0, and x0.5 passed at 16 spp."""
     def darker(params):
         key = "medium1.albedo.value.value"
-        params[key] = params[key] * 0.0
+        params[key] = params[key] * 0.98
         params.update()
-    v = testing.verdict_vs_stock(_scene("test_hetero_sigmat"), spp=64, res=(32, 32), traversal="per_ray",
-                                 ours_modify=darker)
-    assert not v.passed, v.summary
+    v = testing.verdict_vs_stock(_scene("test_hetero_sigmat"), ours_modify=darker, **HETERO)
+    assert v.label == metrics.DIFFERS, v.summary()
 
 
 def test_layer_sorted_matches_stock_with_volpathmis(tmp_path, layer_path_ran):
@@ -181,7 +188,7 @@ def test_own_media_scenes_match_stock_at_the_same_seed(tmp_path, kind):
 
 def test_generated_heterogeneous_grid_agrees_with_stock(tmp_path):
     v = testing.verdict_vs_stock(_own(tmp_path, "grid"), spp=16, res=(32, 32), traversal="per_ray")
-    assert v.passed, v.summary
+    assert v.passed, v.summary()
 
 
 @pytest.mark.parametrize("spectral_mis", [True, False])
@@ -197,7 +204,7 @@ def test_volpathmis_matches_stock_on_chromatic_ink_in_glass(tmp_path, spectral_m
 def test_volpathmis_agrees_with_stock_on_a_chromatic_grid(tmp_path, spectral_mis):
     v = testing.verdict_vs_stock(_own(tmp_path, "chromatic_grid", integrator="volpathmis", spectral_mis=spectral_mis),
                                  spp=16, res=(32, 32), traversal="per_ray")
-    assert v.passed, v.summary
+    assert v.passed, v.summary()
 
 
 def test_volpathmis_settings_come_from_the_scene_file(tmp_path):
