@@ -449,6 +449,18 @@ MUTATIONS = (
              "                               / dr.mean(mei.sigma_t / mei.combined_extinction, axis=0)), w.throughput)\n"
              "        throughput = dr.select(plain, _scaled(throughput, 0.98 * mei.sigma_s / mei.sigma_t), throughput)\n",
              ("tests/runtime/test_volpath.py::test_heterogeneous_media_agree_with_stock_within_noise",)),
+    Mutation("prb_replay_without_area_jacobian", "the replay leaves out the solid-angle to area Jacobian of a "
+             "moving vertex: derivatives with respect to geometry are wrong (issue 55)",
+             "plugin/runtime/estimators/replay.py",
+             "        return L * dr.relative_grad(f) * dr.relative_grad(J)\n",
+             "        return L * dr.relative_grad(f)\n",
+             ("tests/runtime/test_prb.py::test_gradients_same_seed_as_stock[prb-bunny_box-per_ray]",)),
+    Mutation("prb_replay_direction_not_turned", "the replay keeps the sampled direction fixed where a vertex "
+             "moves (the cosine and BSDF do not turn with the geometry)",
+             "plugin/runtime/estimators/replay.py",
+             "        wo = si.to_local(dr.replace_grad(ray_next.d, toward))\n",
+             "        wo = si.to_local(ray_next.d)\n",
+             ("tests/runtime/test_prb.py::test_gradients_same_seed_as_stock[prb-bunny_box-per_ray]",)),
 )
 
 

@@ -18,8 +18,12 @@ from layerbvh_mitsuba.ab.scene_integrator import path_settings
 SCENES = Path(__file__).resolve().parents[2] / "scenes"
 LAYER_HEIGHT = 2  # (cbox at the default height is one treelet)
 # The two parameters differentiated per scene: a BSDF's reflectance and the emitter's radiance.
+# A material, a light, and a geometric key (issue 55): the bunny's vertex positions (forward: every
+# coordinate at once, a move along (1, 1, 1)), whose derivative needs the replay's area Jacobian
+# and turned direction (replay.reattached_reflection; without the Jacobian ours is off by up to
+# 15 against 10.8 at the same seed).
 PARAMS = {"cbox": ("LeftWallBSDF.brdf_0.reflectance.value", "Light.emitter.radiance.value"),
-          "bunny_box": ("red.reflectance.value", "grey.reflectance.value")}
+          "bunny_box": ("red.reflectance.value", "bunny.vertex_positions")}
 
 
 def _as(scene_as, scene: str, integrator: str) -> Path:
@@ -68,7 +72,17 @@ def test_gradients_same_seed_as_stock(scene_as, integrator, name, traversal):
         s = gradient.gradients(mi, scene, stock, key, 8, 3, forward=True)
         o = gradient.gradients(mi, scene, ours, key, 8, 3, forward=True)
         same = gradient.same_seed(s, o)
-        assert same["passed"], (key, same)
+        if key.endswith("vertex_positions"):
+            # A vertex's gradient sums many paths' contributions through atomic adds whose order
+            # differs between runs: float32 rounding of ~1e-3 absolute on gradients up to ~30
+            # (measured 0.0015), which the per-component criterion (1e-3 x max(1, |stock|))
+            # does not allow below 1. Judged against the gradient's scale instead: measured
+            # 5e-5 of it; without the replay's area Jacobian 0.39.
+            assert same["forward"]["passed"], (key, same["forward"])
+            scale = np.abs(s.backward).max()
+            assert np.abs(o.backward - s.backward).max() <= 1e-3 * scale, (key, np.abs(o.backward - s.backward).max(), scale)
+        else:
+            assert same["passed"], (key, same)
         assert np.abs(s.forward).max() > 1e-3 and np.abs(s.backward).max() > 1.0, key  # not a vacuous 0 = 0
 
 
