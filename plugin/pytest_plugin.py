@@ -84,18 +84,21 @@ def _record(config, nodeid: str, result) -> None:
 
 @pytest.fixture
 def layerbvh_ab(request, layerbvh_traversal):
-    """`layerbvh_ab(scene, spp=16, res=(64, 64), traversal="auto", seed=0, ours={...}, grad=None, **params)`:
+    """`layerbvh_ab(scene, spp=16, res=(64, 64), traversal="auto", seed=0, ours={...}, grad=None, mde=None, **params)`:
     render the scene with stock `path` and with layerbvh (`ours`: integrator properties for our
     side only; `params`: the scene's $parameters), same seed, and assert the two-step verdict
     (same paths, or agreement within Monte Carlo noise at independent seeds). With `grad` (a
     mi.traverse key of a prb, prb_basic or prbvolpath scene) the derivatives with respect to that
-    parameter must pass the same two steps too (`layerbvh compare --grad`). Returns the
-    ABResult; raises an AssertionError with one readable paragraph when a verdict fails."""
+    parameter must pass the same two steps too (`layerbvh compare --grad`). With `mde` (e.g.
+    0.01) the verdict must also rule out every bias of the image mean above that share: the check
+    takes more samples per pixel until it does, up to `mde_max_spp` (testing.run_check). Returns
+    the ABResult; raises an AssertionError with one readable paragraph when a verdict fails."""
     from layerbvh_mitsuba.testing import run_check  # local: Mitsuba loads when a test asks for a check
     config = request.config
     calls = []
 
-    def check(scene, spp=16, res=(64, 64), traversal="auto", seed=0, ours=None, grad=None, **params):
+    def check(scene, spp=16, res=(64, 64), traversal="auto", seed=0, ours=None, grad=None, mde=None,
+              mde_max_spp=None, **params):
         __tracebackhide__ = True  # a failure shows the user's line and the message, not ours
         mode = layerbvh_traversal or traversal
         out = _results_dir(config)
@@ -103,7 +106,8 @@ def layerbvh_ab(request, layerbvh_traversal):
         result = run_check(scene, spp=spp, res=res, traversal=mode, seed=seed, ours=ours,
                            variant=config.getoption("--layerbvh-variant"),
                            use_cache=not config.getoption("--layerbvh-no-cache"), keep_dir=keep,
-                           keep_all=config.getoption("--layerbvh-keep-all"), grad=grad, **params)
+                           keep_all=config.getoption("--layerbvh-keep-all"), grad=grad, mde=mde,
+                           mde_max_spp=mde_max_spp, **params)
         calls.append(result)
         _record(config, request.node.nodeid + (f" [{len(calls)}]" if len(calls) > 1 else ""), result)
         if not result.passed:

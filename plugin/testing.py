@@ -1,12 +1,13 @@
 """Reusable pytest helpers: check that the layerbvh integrator renders a scene (and, for prb and its kin, its derivatives) like stock Mitsuba (same seed, and statistically), each an `ab.compare.compare` run."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from layerbvh_mitsuba.ab import metrics
+from layerbvh_mitsuba.ab import hypotheses, metrics
 from layerbvh_mitsuba.ab.compare import CompareSettings, Comparison, compare, ours_props as ours_props_of
 from layerbvh_mitsuba.ab.metrics import SAME_SEED_MAX_MEAN_REL, SAME_SEED_MIN_FRAC, SAME_SEED_TOL, same_seed_verdict
 from layerbvh_mitsuba.ab.render import load_scene, use_variant, write_exr
@@ -117,6 +118,8 @@ class ABResult:
     traversal: str
     comparison: Comparison = field(repr=False)
     page: str | None = None    # index.html of its compare page, where one was kept
+    mde_target: float | None = None  # the MDE the check asked for (run_check's `mde`)
+    mde_unreached: str | None = None  # why the verdict's MDE stayed above it, where it did
 
     @property
     def verdict(self) -> Verdict:
@@ -153,21 +156,66 @@ class ABResult:
 
     @property
     def passed(self) -> bool:
-        return self.verdict.passed and (self.gradient is None or self.gradient.passed)
+        return (self.verdict.passed and (self.gradient is None or self.gradient.passed)
+                and self.mde_unreached is None)
 
     def message(self) -> str:
         """One readable paragraph: the verdict, its numbers, where the page is."""
         m = self.metrics
         where = f" Page: {self.page}" if self.page else " (run with --layerbvh-results DIR to keep its page)"
         grad = "" if self.gradient is None else f" {self.gradient.summary()}."
+        if self.mde_unreached:
+            grad += f" {self.mde_unreached}."
         return (f"{self.scene} ({self.traversal}): {self.verdict.label}. {self.verdict.summary()}.{grad} "
                 f"RMSE {m['rmse']:.3g}, relMSE {m['rel_mse']:.3g}, pixels over 1e-3 "
                 f"{100 * m['frac_pixels_over_1e-3']:.2f}%; stock {self.stock_s:.2f} s"
                 f"{' (cached)' if self.stock_cached else ''}, ours {self.ours_s:.2f} s.{where}")
 
 
+# `mde`: a check may ask its verdict to rule out every bias of the image mean above a share; the
+# samples per pixel grow (at most MDE_SPP_BUDGET x the asked spp) until the verdict's MDE
+# (hypotheses.Family.power) reaches it, else the check fails saying where it stopped. The MDE
+# falls about as 1/sqrt(spp) towards the equivalence margin (hypotheses.MARGIN), below which no
+# spp can take it.
+MDE_SPP_BUDGET = 64
+
+
 def run_check(scene, spp=16, res=(64, 64), traversal="auto", seed=0, ours=None, variant=None, use_cache=True,
-              keep_dir: Path | None = None, keep_all=False, ours_modify=None, grad=None, **params) -> ABResult:
+              keep_dir: Path | None = None, keep_all=False, ours_modify=None, grad=None, mde=None, mde_max_spp=None,
+              **params) -> ABResult:
+    """`run_one` at `spp`, or with `mde` (a relative bias of the image mean, e.g. 0.01) again at
+    more samples per pixel until the verdict's MDE is at most `mde` (up to `mde_max_spp`,
+    default MDE_SPP_BUDGET x spp); the result fails with the reason where it never is."""
+    if mde is None:
+        return run_one(scene, spp, res, traversal, seed, ours, variant, use_cache, keep_dir, keep_all, ours_modify,
+                       grad, **params)
+    if not hypotheses.MARGIN < mde < 1:
+        raise ValueError(f"mde={mde!r}: must lie between the verdict's equivalence margin {hypotheses.MARGIN:g} "
+                         f"(float rounding, which no number of samples removes) and 1")
+    cap = int(mde_max_spp or MDE_SPP_BUDGET * spp)
+    while True:
+        result = run_one(scene, spp, res, traversal, seed, ours, variant, use_cache, None, False, ours_modify, grad,
+                         **params)
+        got = (result.verdict.mde() or {}).get("image")
+        if not result.verdict.passed or (got is not None and got <= mde) or spp >= cap or got is None:
+            break
+        # MDE ~ MARGIN + k / sqrt(spp): the spp that reaches `mde`, at least twice and at most 16x this one.
+        need = spp * ((got - hypotheses.MARGIN) / (mde - hypotheses.MARGIN)) ** 2 * 1.2
+        spp = int(min(cap, max(2 * spp, min(16 * spp, math.ceil(need)))))
+    result.mde_target = mde
+    if result.verdict.passed and (got is None or got > mde):
+        result.mde_unreached = (f"asked to rule out a bias above {100 * mde:.2g}% of the image mean: "
+                                + ("this verdict states no MDE (no test of equal means ran)" if got is None else
+                                   f"its MDE is {100 * got:.2g}% at {spp} spp, the most this check may take "
+                                   f"(mde_max_spp {cap})"))
+    if keep_dir is not None and (keep_all or not result.passed):
+        write_comparison(keep_dir, result.comparison)
+        result.page = str(Path(keep_dir) / "index.html")
+    return result
+
+
+def run_one(scene, spp=16, res=(64, 64), traversal="auto", seed=0, ours=None, variant=None, use_cache=True,
+            keep_dir: Path | None = None, keep_all=False, ours_modify=None, grad=None, **params) -> ABResult:
     """The A/B check of the pytest plugin and `verdict_vs_stock`: `compare` of stock `path` (the
     scene's own path settings; with `use_cache`, cached by scene content and settings) against
     layerbvh with `ours` integrator properties on top (and `ours_modify(params)` applied to its

@@ -461,6 +461,12 @@ MUTATIONS = (
              "        wo = si.to_local(dr.replace_grad(ray_next.d, toward))\n",
              "        wo = si.to_local(ray_next.d)\n",
              ("tests/runtime/test_prb.py::test_gradients_same_seed_as_stock[prb-bunny_box-per_ray]",)),
+    Mutation("check_ignores_asked_mde", "a pytest check given mde= runs once at its spp and passes whatever its "
+             "verdict's MDE (issue 55)",
+             "plugin/testing.py",
+             "    if mde is None:\n        return run_one(",
+             "    if True:\n        return run_one(",
+             ("tests/tools/test_verdict.py::test_a_check_asked_for_an_mde_takes_the_samples_it_needs",)),
 )
 
 
