@@ -426,7 +426,7 @@ MUTATIONS = (
              "plugin/ab/verdict.py",
              "        paired = hypotheses.paired(stock_img, ours_img, reach,",
              "        paired = [] and hypotheses.paired(stock_img, ours_img, reach,",
-             ("tests/tools/test_verdict.py::test_diverged_paths_of_a_full_depth_scene_agree",)),
+             ("tests/tools/test_verdict.py::test_diverged_paths_of_a_full_depth_scene_agree_and_the_report_says_why",)),
     Mutation("paired_variance_ignores_shared_samples", "the paired test's variance leaves out the covariance of "
              "pixels that share samples through the film's filter (too narrow: false alarms)",
              "plugin/ab/hypotheses.py",
