@@ -50,7 +50,8 @@ c = compare(mi, CompareSettings(scene={str(STOKES)!r}, res=(16, 16), spp=4, seed
 out(case="compare", label=c.verdict.label, shape=list(c.ours.shape), resolution=list(c.resolution))
 z = statistical_step(mi, {str(STOKES)!r}, (16, 16), 16 * 16 * 64, ps.stock_inner(), {{"type": "layerbvh", **ps.props}},
                      wrap=ps.integrator)
-out(case="statistical", resolution=list(z.resolution), passed=z.passed, summary=z.family.summary(), pixels=z.pixels)
+out(case="statistical", resolution=list(z.resolution), passed=z.passed, summary=z.family.summary(), pixels=z.pixels,
+    pixel_tests=sum(t.count for t in z.tests if t.level == "pixel"))
 # `layerbvh render`: the EXR holds stock's 15 channels under stock's names.
 import tempfile
 from layerbvh_mitsuba.cli import main
@@ -111,6 +112,7 @@ def test_compare_judges_the_five_stokes_panels(polarized):
     assert (c["label"], c["shape"], c["resolution"]) == ("same paths", [16, 80, 3], [16, 16])
     z = polarized[("statistical", None)]
     assert z["pixels"] == 5 * z["resolution"][0] * z["resolution"][1] and z["passed"], z
+    assert z["pixel_tests"] == 3 * z["pixels"], z  # every panel's pixels tested, per channel
 
 
 def test_render_writes_the_stokes_channels_under_stocks_names(polarized):
