@@ -51,6 +51,15 @@ class SameSeedResult:
                 f"(mean pixel {self.mean_ref:.3g}), max |diff| {self.max_abs:.3g}")
 
 
+def scaled_reflectances(factor: float):
+    """A negative control's `modify(params)`: every reflectance of the scene (every key ending in
+    `reflectance.value`) times `factor`, the bias the verdict's controls and power study use."""
+    def modify(params):
+        for key in [k for k in params.keys() if k.endswith("reflectance.value")]:
+            params[key] = params[key] * factor
+    return modify
+
+
 def load(scene_path, res=None, **params):
     """Load an XML scene with optional $parameters and a film resolution override."""
     return load_scene(use_variant(), str(scene_path), res, **params)

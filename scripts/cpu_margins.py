@@ -118,18 +118,18 @@ def _print(result: dict) -> None:
 
 def _lines(result: dict) -> list[str]:
     out = []
-    print = out.append  # noqa: A001  (the table's lines, for the terminal and table.md)
+    add = out.append  # (the table's lines, for the terminal and table.md)
     for isa, m in result["isas"].items():
-        print(f"# {isa}: {m['cpu']['model']}, LLVM {m['cpu']['llvm_isa']} {m['cpu']['lanes']} lanes; "
-              f"pytest rc {m['rc']} in {m['seconds']} s")
-    print("")
-    print("Tests near a threshold (a pixel already outside the same-seed tolerance, or mean |diff| above "
-          f"{NEAR_MEAN:g} of its bound, judged by the default criterion: a test with its own tolerance may have "
-          "more room) or whose outcome differs between the ISAs:")
-    print("")
-    print("| test | " + " | ".join(f"{isa} within (margin) / mean share" for isa in result["isas"])
-          + " | labels | flag |")
-    print("|---|" + "---|" * (len(result["isas"]) + 2))
+        add(f"# {isa}: {m['cpu']['model']}, LLVM {m['cpu']['llvm_isa']} {m['cpu']['lanes']} lanes; "
+            f"pytest rc {m['rc']} in {m['seconds']} s")
+    add("")
+    add("Tests near a threshold (a pixel already outside the same-seed tolerance, or mean |diff| above "
+        f"{NEAR_MEAN:g} of its bound, judged by the default criterion: a test with its own tolerance may have "
+        "more room) or whose outcome differs between the ISAs:")
+    add("")
+    add("| test | " + " | ".join(f"{isa} within (margin) / mean share" for isa in result["isas"])
+        + " | labels | flag |")
+    add("|---|" + "---|" * (len(result["isas"]) + 2))
     for test, r in result["tests"].items():
         cells = []
         for isa in result["isas"]:
@@ -139,7 +139,7 @@ def _lines(result: dict) -> list[str]:
         labels = "; ".join(f"{isa}: {', '.join(v)}" for isa, v in r["labels"].items())
         flag = " ".join(f for f, on in (("NEAR", r["near"]), ("ISA-SPLIT", r["isas_disagree"])) if on)
         if r["near"] or r["isas_disagree"] or "--all" in sys.argv:
-            print(f"| {test} | " + " | ".join(cells) + f" | {labels} | {flag} |")
+            add(f"| {test} | " + " | ".join(cells) + f" | {labels} | {flag} |")
     return out
 
 

@@ -52,13 +52,6 @@ def _save(doc: dict) -> None:
     tmp.replace(RESULTS)  # write, then rename: a stopped run leaves the last whole file
 
 
-def _scaled_reflectances(factor: float):
-    def modify(params):
-        for k in [k for k in params.keys() if k.endswith("reflectance.value")]:
-            params[k] = params[k] * factor
-    return modify
-
-
 def run(scenes: list[str], factors: list[float], seeds: int) -> None:
     import mitsuba as mi
     mi.set_variant("llvm_ad_rgb")
@@ -75,7 +68,7 @@ def run(scenes: list[str], factors: list[float], seeds: int) -> None:
                     continue
                 t0 = time.perf_counter()
                 v = testing.verdict_vs_stock(ROOT / path, spp=spp, res=res, seed=seed, traversal="auto",
-                                             ours_modify=None if factor == 1.0 else _scaled_reflectances(factor))
+                                             ours_modify=None if factor == 1.0 else testing.scaled_reflectances(factor))
                 fam = v.family
                 doc["runs"][key] = {"scene": name, "factor": factor, "seed": seed, "label": v.label,
                                     "same_seed_passed": bool(v.same_seed["passed"]),

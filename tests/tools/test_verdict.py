@@ -37,11 +37,6 @@ def test_student_p_values_and_the_rules():
     assert not metrics.verdict_passed(metrics.verdict_label(False, None))
 
 
-def _every_reflectance(params, factor=1.02):
-    for key in [k for k in params.keys() if k.endswith("reflectance.value")]:
-        params[key] = params[key] * factor
-
-
 def _drop_second_largest_mesh(params):
     # Shapes have no ids in this scene; their keys change from load to load, their sizes do not.
     key = sorted((k for k in params.keys() if k.endswith("vertex_positions")), key=lambda k: -dr.width(params[k]))[1]
@@ -51,7 +46,7 @@ def _drop_second_largest_mesh(params):
 @pytest.mark.parametrize("change", ["albedo", "dropped shape", "max_depth"])
 def test_a_real_difference_differs(change):
     """Negative controls at the positive control's settings: each must be rejected."""
-    kw = {"albedo": dict(ours_modify=_every_reflectance), "dropped shape": dict(ours_modify=_drop_second_largest_mesh),
+    kw = {"albedo": dict(ours_modify=testing.scaled_reflectances(1.02)), "dropped shape": dict(ours_modify=_drop_second_largest_mesh),
           "max_depth": dict(ours_props={"max_depth": 3})}[change]
     v = testing.verdict_vs_stock(STAIRCASE, **SIZE, **kw)
     assert v.label == metrics.DIFFERS, v.summary()
