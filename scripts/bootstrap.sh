@@ -56,5 +56,13 @@ if [ ! -x .venv/bin/python ] || [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; th
   # (--no-compile: byte-compiling every installed module took half the install's time; Python
   # compiles what a run imports, once, into __pycache__)
   .venv/bin/python -m pip install -q --no-compile --disable-pip-version-check -e '.[test]'
+  # ... but not where PYTHONDONTWRITEBYTECODE is set (this project's machines set it): there
+  # every process compiled the ~900 modules it imports from source, 3 s of a 6 s `compare` on a
+  # small scene (PERFORMANCE.md, entry 50). Written here once for what the tools import; later
+  # processes read it whatever that variable says.
+  say "byte-compiling the modules the tools import"
+  env -u PYTHONDONTWRITEBYTECODE .venv/bin/python -W ignore -c \
+    'import layerbvh_mitsuba.cli, layerbvh_mitsuba.tools.sweep.runner, colour, matplotlib.pyplot, dask.distributed' \
+    || say "byte-compiling failed (the tools still run, each compiling what it imports)"
   echo "$want" > "$stamp"
 fi

@@ -13,6 +13,11 @@ set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$root/scripts/bootstrap.sh" --test
 cd "$root"
+# The suite starts some hundred Python processes (CLI commands, sweep and SLURM workers, pytest's
+# own): with PYTHONDONTWRITEBYTECODE set (as on this project's machines) each compiled every
+# module it imports from source, ours and pytest's too. Unset, the first writes __pycache__ (it is
+# in .gitignore) and the rest read it (PERFORMANCE.md, entry 50).
+unset PYTHONDONTWRITEBYTECODE
 # The machine first (issue 64): a failure reads against its CPU, its SIMD and Dr.Jit's lanes.
 .venv/bin/python -c 'import layerbvh as L, os
 f = open("/proc/cpuinfo").read().split() if os.path.exists("/proc/cpuinfo") else []
