@@ -113,14 +113,16 @@ def atomic_folder(out, marker: str):
         raise
 
 
-def check_output_folder(out, marker: str) -> str | None:
+def check_output_folder(out, marker: str | tuple[str, ...]) -> str | None:
     """Why `out` cannot take an output folder (one line), or None: it is a file, a folder of
-    somebody else's files, or its parent cannot be created or written."""
+    somebody else's files (none of the `marker` files a layerbvh output holds), or its parent
+    cannot be created or written."""
     out = Path(out)
+    markers = (marker,) if isinstance(marker, str) else marker
     if out.exists() and not out.is_dir():
         return f"{out} exists and is not a folder"
-    if out.is_dir() and any(out.iterdir()) and not (out / marker).exists():
-        return f"{out} exists and holds files that are not a layerbvh output (no {marker}): choose another folder"
+    if out.is_dir() and any(out.iterdir()) and not any((out / m).exists() for m in markers):
+        return f"{out} exists and holds files that are not a layerbvh output (no {markers[0]}): choose another folder"
     return _check_writable(out.absolute().parent)
 
 

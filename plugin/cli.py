@@ -2,9 +2,11 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import os
 import shlex
+import signal
 import sys
 import tempfile
 import traceback
@@ -23,8 +25,8 @@ from layerbvh_mitsuba.ab.compare import (
     ours_props,
     wrapped,
 )
-from layerbvh_mitsuba.ab.render import (UserError, load_integrator, load_scene, render_channels, render_passes,
-    scene_spp, use_variant, write_exr)
+from layerbvh_mitsuba.ab.render import (UserError, check_seed, load_integrator, load_scene, render_channels,
+    render_passes, scene_spp, use_variant, write_exr)
 from layerbvh_mitsuba.ab.scene_integrator import SUPPORTED, path_settings
 from layerbvh_mitsuba.ab.report import REPORT_MARKER, heatmap_png, write_comparison
 from layerbvh_mitsuba.runtime.scene_geometry import UnsupportedShapeError
@@ -136,6 +138,7 @@ def _check_args(args):
         return
     if args.spp is not None and args.spp < 1:
         raise UserError(f"--spp must be >= 1, got {args.spp}")
+    check_seed(args.seed)
     try:  # the integrator's own rules, named as the option: "--treelet-height must ..."
         args.traversal = Traversal.parse(args.traversal)
         check_traversal_settings(treelet_height=args.treelet_height, leaf_size=args.leaf_size, batch_rays=1,
@@ -207,11 +210,45 @@ def disk_full(e: BaseException) -> bool:
     return False
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a job scheduler's stop, `kill`), handled as Ctrl-C: what is stored is kept, the
+    rest stops in order (issue 56). Exit 143 (128 + SIGTERM), as a shell reports it."""
+
+
+_sigterms = 0  # SIGTERMs received (a sweep catches the interrupt itself: main reads this)
+
+
+def _on_sigterm(signum, frame):
+    global _sigterms
+    _sigterms += 1
+    raise Terminated
+
+
+@contextlib.contextmanager
+def _sigterm_as_ctrl_c():
+    """While a command runs, SIGTERM raises Terminated in the main thread (between Python steps:
+    a render pass ends first); the earlier handler comes back after it (main() also runs inside
+    tests)."""
+    try:
+        old = signal.signal(signal.SIGTERM, _on_sigterm)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     args.command_line = "layerbvh " + shlex.join(sys.argv[1:] if argv is None else argv)  # what outputs quote
+    sigterms = _sigterms
     try:
-        return _run(args)
+        with _sigterm_as_ctrl_c():
+            rc = _run(args)
+        # (a sweep stops its points on the interrupt itself and returns 130)
+        return 143 if rc == 130 and _sigterms > sigterms else rc
     except BrokenPipeError:  # `layerbvh compare ... | head`: the reader left; outputs were written before
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # (Python's flush at exit would fail again)
         return 141  # 128 + SIGPIPE, as a shell reports a command killed by a closed pipe
@@ -220,7 +257,7 @@ def main(argv=None) -> int:
             # A bar interrupted while it draws is never cleared: end its line (on a terminal, erase it).
             sys.stderr.write("\r\033[K" if sys.stderr.isatty() else "\n")
         print("layerbvh: interrupted; nothing written", file=sys.stderr)
-        return 130
+        return 143 if _sigterms > sigterms else 130
     except Exception as e:  # a bug, not bad input: one line, the traceback kept in a file
         if disk_full(e):  # the user's disk, not our bug (the file was a temporary sibling: name the output)
             where = getattr(args, "out", None) or getattr(args, "output", None) or "the output"

@@ -403,6 +403,42 @@ MUTATIONS = (
              "                         None if s.integrator is None else _stage(STOCK, \"setup\", lambda: load_integrator(mi, s.integrator)))\n",
              "                         None)\n",
              ("tests/tools/test_third_party.py::test_table_has_a_verdict_per_scene_and_names_refused_plugins",)),
+    Mutation("scene_sample_count_zero_rendered", "a scene whose sampler has sample_count 0 (no --spp) is rendered: "
+             "the process dies of SIGFPE (issue 56)",
+             "plugin/ab/render.py",
+             "    if spp < 1:\n        raise UserError(f\"the scene's sampler has sample_count {spp}; give --spp N or a sample_count >= 1\")\n",
+             "",
+             ("tests/tools/test_cli.py::test_legal_scene_numbers_and_seeds_a_sampler_cannot_take_are_one_line",)),
+    Mutation("pass_seed_overflows", "pass seeds seed x 7919 + k without the modulo: a Unix time as the seed "
+             "overflows the sampler's 32 bits (issue 56)",
+             "plugin/ab/render.py",
+             "    return seed if passes == 1 else (seed * 7919 + k) % (SEED_MAX + 1)\n",
+             "    return seed if passes == 1 else seed * 7919 + k\n",
+             ("tests/tools/test_cli.py::test_legal_scene_numbers_and_seeds_a_sampler_cannot_take_are_one_line",)),
+    Mutation("sweep_out_not_checked", "sweep writes into whatever --out names: a folder of the user's own "
+             "index.html, results.csv and summary.md is overwritten (issue 56)",
+             "plugin/tools/sweep/grid.py",
+             "    problem = atomic.check_output_folder(args.out, (RUNS_FILE, JOB_SCRIPT))\n",
+             "    problem = None\n",
+             ("tests/tools/test_sweep.py::test_bad_sweep_input_gives_one_line_and_writes_nothing",)),
+    Mutation("lfs_texture_not_named", "a scene whose texture is a Git LFS pointer fails with Mitsuba's "
+             "'Bitmap: Unknown file format!' alone, naming no file (issue 56)",
+             "plugin/ab/render.py",
+             "        named = _file_behind(str(e), path)\n",
+             "        named = ''\n",
+             ("tests/tools/test_cli.py::test_legal_scene_numbers_and_seeds_a_sampler_cannot_take_are_one_line",)),
+    Mutation("zero_scale_instance_kept", "an instance scaled to zero is handed to the engine (refused as "
+             "singular), where stock renders it as absent (issue 56)",
+             "plugin/runtime/scene_geometry.py",
+             "        if np.linalg.matrix_rank(m[:3, :3]) < 3:\n",
+             "        if False:\n",
+             ("tests/runtime/test_instancing.py::test_an_instance_scaled_to_zero_renders_as_stock_renders_it",)),
+    Mutation("sigterm_not_handled", "SIGTERM keeps Python's default (the process dies where it is: Dask's "
+             "processes warn of leaked semaphores, no line, exit -15) (issue 56)",
+             "plugin/cli.py",
+             "        old = signal.signal(signal.SIGTERM, _on_sigterm)\n",
+             "        old = signal.getsignal(signal.SIGTERM)\n",
+             ("tests/tools/test_sweep.py::test_sigterm_stops_a_sweep_as_ctrl_c_does",)),
     Mutation("gradient_stock_side_taken_for_ours", "a gradient step given stock's earlier renders takes them for "
              "ours' side as well (the negative control then compares stock with itself)",
              "plugin/ab/gradient.py",

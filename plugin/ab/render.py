@@ -3,9 +3,11 @@ from __future__ import annotations
 
 import contextlib
 import math
+import re
 import sys
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
@@ -42,11 +44,21 @@ def use_variant(variant: str | None = None):
     return mi
 
 
+SEED_MAX = (1 << 32) - 1  # Mitsuba's sampler seed is a 32-bit unsigned integer (mi.render's `seed`)
+
+
+def check_seed(seed: int, option: str = "--seed") -> None:
+    """Refuse (UserError, one line) a seed Mitsuba's sampler cannot take."""
+    if not 0 <= seed <= SEED_MAX:
+        raise UserError(f"{option} must be from 0 to {SEED_MAX} (Mitsuba's sampler seed is 32-bit), got {seed}")
+
+
 def pass_seed(seed: int, k: int, passes: int) -> int:
-    """Seed of pass k of `passes`: the user's seed itself when there is one pass, else one far
-    from any other seed's passes (7919 is prime, so seeds s and s' never share a pass seed for
-    k < 7919)."""
-    return seed if passes == 1 else seed * 7919 + k
+    """Seed of pass k of `passes`: the user's seed itself when there is one pass, else
+    seed x 7919 + k modulo 2^32 (within the sampler's 32 bits for every seed a user may give:
+    issue 56, a Unix time as the seed overflowed). 7919 is odd, so for each k distinct seeds
+    give distinct pass seeds, and seeds below 2^32 / 7919 never share a pass seed for k < 7919."""
+    return seed if passes == 1 else (seed * 7919 + k) % (SEED_MAX + 1)
 
 
 @contextlib.contextmanager
@@ -96,6 +108,9 @@ def load_scene(mi, path: str, res=None, **params):
             scene = mi.load_file(str(path), **params)
     except Exception as e:  # Mitsuba raises RuntimeError with a multi-line message
         line = str(e).strip().splitlines()[-1]
+        named = _file_behind(str(e), path)
+        if named:
+            line += f" ({named})"
         if "only be used in polarized mode" in line:  # (Mitsuba's stokes integrator)
             line += f" (the active variant is {mi.variant()}: pass --variant llvm_ad_spectral_polarized or " \
                     f"llvm_ad_mono_polarized)"
@@ -108,7 +123,46 @@ def load_scene(mi, path: str, res=None, **params):
         params["film.crop_size"] = list(res)
         params["film.crop_offset"] = [0, 0]
         params.update()
+    size = list(scene.sensors()[0].film().crop_size())
+    if min(size) < 1:  # (Mitsuba loads it, then fails inside mi.render: issue 56)
+        raise UserError(f"scene {path}: its film is {size[0]}x{size[1]} pixels; give --res W H or a film "
+                        f"width and height >= 1")
     return scene
+
+
+LFS_POINTER = b"version https://git-lfs.github.com/spec/"  # how a Git LFS pointer file begins
+_AT = re.compile(r"At (.+?) \(line (\d+), col (\d+)\)")
+_FILENAME = re.compile(r'<string\b[^>]*\bname="filename"[^>]*>|<string\b[^>]*\bvalue="[^"]*"[^>]*\bname="filename"[^>]*>')
+
+
+def _file_behind(message: str, scene_path) -> str:
+    """The file a failed plugin was reading, named (Mitsuba's "Bitmap: Unknown file format!" names
+    none, issue 56): the first `filename` at or after the XML position the message gives, and
+    whether it is missing or a Git LFS pointer (a clone without `git lfs pull`). '' if none."""
+    at = _AT.search(message)
+    if not at or "Bitmap" not in message and "file" not in message.lower():
+        return ""
+    xml = Path(at.group(1))
+    try:
+        lines = xml.read_text(errors="replace").splitlines(keepends=True)
+    except OSError:
+        return ""
+    line, col = int(at.group(2)), int(at.group(3))
+    rest = "".join(lines[line - 1:])[max(col - 1, 0):]
+    tag = _FILENAME.search(rest)
+    value = re.search(r'\bvalue="([^"]*)"', tag.group(0)) if tag else None
+    if not value:
+        return ""
+    name = value.group(1)
+    file = Path(name) if Path(name).is_absolute() else xml.parent / name
+    try:
+        with open(file, "rb") as f:
+            head = f.read(len(LFS_POINTER))
+    except OSError:
+        head = b""
+    if head == LFS_POINTER:
+        return f"{name} is a Git LFS pointer, not the file: fetch it with git lfs pull"
+    return "" if name in message else f"reading {name}"
 
 
 def load_integrator(mi, props: dict):
@@ -172,7 +226,12 @@ def render_passes(mi, scene, integrator, spp: int, seed: int, label: str, progre
 
 
 def scene_spp(scene) -> int:
-    return scene.sensors()[0].sampler().sample_count()
+    """The scene's samples per pixel (its first sensor's sampler); refused where it is 0 (Mitsuba
+    loads such a scene, and its render dies of a division by zero: issue 56)."""
+    spp = scene.sensors()[0].sampler().sample_count()
+    if spp < 1:
+        raise UserError(f"the scene's sampler has sample_count {spp}; give --spp N or a sample_count >= 1")
+    return spp
 
 
 @dataclass

@@ -279,6 +279,11 @@ def collect_geometry(scene) -> SceneGeometry:
             groups.append(_group(f"shapegroup '{gid}'", parts, part_ids))
             group_tests[gid] = tests
         m = np.array(mi.traverse(inst)["to_world"].matrix, np.float64).reshape(4, 4)
+        if np.linalg.matrix_rank(m[:3, :3]) < 3:
+            # Scaled to zero along some axis (a hidden copy, or flattened onto a plane): stock's
+            # Embree renders such an instance as absent, measured bit for bit (issue 56).
+            # It has no inverse to trace in, so it is left out, as stock leaves it.
+            continue
         placements.append(Placement(group_of[gid], m, i))
         if group_tests[gid]:
             to_object = mi.traverse(inst)["to_world"].inverse()

@@ -76,6 +76,52 @@ def test_bad_inputs_give_one_clear_line_and_no_output(tmp_path, capsys):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".tmp")]
 
 
+def _tiny(tmp_path, name: str, width: int = 4, height: int = 4, spp: int = 4) -> str:
+    path = tmp_path / f"{name}.xml"
+    path.write_text(f"""<scene version="3.0.0"><sensor type="perspective">
+        <transform name="to_world"><lookat origin="0,0,4" target="0,0,0" up="0,1,0"/></transform><film type="hdrfilm">
+        <integer name="width" value="{width}"/><integer name="height" value="{height}"/></film>
+        <sampler type="independent"><integer name="sample_count" value="{spp}"/></sampler></sensor>
+        <shape type="sphere"/><emitter type="constant"/></scene>""")
+    return str(path)
+
+
+def test_legal_scene_numbers_and_seeds_a_sampler_cannot_take_are_one_line(tmp_path, capsys):
+    """Issue 56: a scene's sampler with sample_count 0 (no --spp) died of SIGFPE; a 0x0 film (no
+    --res) was an internal error inside mi.render; --seed -1 or 2^32 gave two lines and an internal
+    error; a texture that is a Git LFS pointer failed naming no file. Each is one line naming it,
+    exit 2, nothing written. A seed a user may legally give (a Unix time) renders in several
+    passes: the pass seeds stay within 32 bits."""
+    zero_spp, zero_film = _tiny(tmp_path, "zero_spp", spp=0), _tiny(tmp_path, "zero_film", 0, 0)
+    out = tmp_path / "o.exr"
+    for cmd, scene, extra, says in (
+            ("render", zero_spp, [], "sample_count 0"), ("compare", zero_spp, [], "sample_count 0"),
+            ("render", zero_film, [], "its film is 0x0 pixels"), ("compare", zero_film, ["--spp", "2"], "its film is 0x0"),
+            ("render", SCENES / "cbox.xml", ["--seed", "-1"], "--seed must be from 0 to 4294967295"),
+            ("compare", SCENES / "cbox.xml", ["--seed", "4294967296"], "--seed must be from 0 to 4294967295")):
+        target = ["-o", str(out)] if cmd == "render" else ["--out", str(tmp_path / "cmp")]
+        assert main([cmd, str(scene), *extra, *target, "--no-progress"]) == 2, (cmd, scene, extra)
+        assert says in _err(capsys), (cmd, scene, extra)
+    assert main(["sweep", str(SCENES / "cbox.xml"), "--job", "compare", "--seed", "-1", "--out",
+                 str(tmp_path / "sw")]) == 2
+    assert "--seed must be from 0" in _err(capsys)
+    assert not out.exists() and not (tmp_path / "cmp").exists() and not (tmp_path / "sw").exists()
+    # A texture that is a Git LFS pointer (a clone without `git lfs pull`): Mitsuba says "Bitmap:
+    # Unknown file format!" and names no file; the line names it.
+    (tmp_path / "wood.png").write_bytes(b"version https://git-lfs.github.com/spec/v1\noid sha256:4d7a\nsize 12\n")
+    textured = Path(_tiny(tmp_path, "textured"))
+    textured.write_text(textured.read_text().replace('<shape type="sphere"/>', """<shape type="sphere"><bsdf
+        type="diffuse"><texture type="bitmap" name="reflectance"><string name="filename" value="wood.png"/>
+        </texture></bsdf></shape>"""))
+    assert main(["render", str(textured), "-o", str(out), "--no-progress"]) == 2
+    assert "wood.png is a Git LFS pointer" in _err(capsys)
+    # 65 spp: two passes (render.SPP_PER_PASS 64), pass seeds from 1,700,000,000 x 7919.
+    assert main(["render", _tiny(tmp_path, "unix_time"), "--spp", "65", "--seed", "1700000000", "-o", str(out),
+                 "--no-progress"]) == 0
+    img = np.array(mi.Bitmap(str(out)))
+    assert np.isfinite(img).all() and img.mean() > 0
+
+
 @pytest.mark.parametrize("traversal", ["per_ray", "layer_sorted", "embree"])
 def test_a_scene_without_emitters_renders_black_like_stock(tmp_path, capsys, traversal):
     """Regression: with nothing to add to L, the megakernel's loop state came back unchanged and

@@ -140,6 +140,29 @@ def test_failures_are_rows_and_an_external_scheduler_runs_the_points(tmp_path):
     assert _last_run(out)["failed"] == [rows[1]["key"]]
 
 
+def test_sigterm_stops_a_sweep_as_ctrl_c_does(tmp_path):
+    """Issue 56: SIGTERM (a scheduler's stop, `kill`) killed the sweep outright: stored rows were
+    kept, but its Dask processes left "leaked semaphore objects" warnings. Now it stops as on
+    Ctrl-C: the stored point kept and in the tables, one line, exit 143, no process left behind."""
+    import psutil
+    out = tmp_path / "sw"
+    p = subprocess.Popen([sys.executable, "-m", "layerbvh_mitsuba.cli", "sweep", str(SCENES / "cbox.xml"), "--job",
+                          "compare", "--traversal", "per_ray,layer_sorted,layer_unsorted", *TINY, "--workers", "1",
+                          "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not list((out / "points").glob("*/result.json")) and time.monotonic() < deadline and p.poll() is None:
+        time.sleep(0.1)
+    children = psutil.Process(p.pid).children(recursive=True)
+    p.terminate()
+    _, err = p.communicate(timeout=120)
+    assert p.returncode == 143, err
+    stored = len(list((out / "points").glob("*/result.json")))
+    assert err.strip().splitlines() == [f"layerbvh: interrupted; {stored} of 3 points stored, tables written"], err
+    assert stored >= 1 and len([r for r in _rows(out) if r["status"] == "ok"]) == stored
+    gone, alive = psutil.wait_procs(children, timeout=30)
+    assert not alive, [c.cmdline() for c in alive]
+
+
 def test_a_point_over_its_memory_limit_is_killed_and_recorded():
     [point] = store.make_points("compare", [(str(SCENES / "cbox.xml"), "cbox.xml")],
                                 [{"traversal": "per_ray", "treelet_height": 8, "spp": 2, "res": [16, 12], "seed": 0,
@@ -165,4 +188,16 @@ def test_bad_sweep_input_gives_one_line_and_writes_nothing(tmp_path, capsys):
     assert "--traversal" in err([str(SCENES / "cbox.xml"), "--job", "compare", "--traversal", "per_ray,fast"])
     assert "--budget" in err([str(SCENES / "cbox.xml"), "--job", "converge"])
     assert "--rays" in err([str(SCENES / "cbox.xml"), "--job", "bench", "--rays", "sideways"])
+    assert "--seed must be from 0" in err([str(SCENES / "cbox.xml"), "--job", "compare", "--seed", "4294967296"])
     assert not out.exists()
+    # Issue 56: --out an existing file was an internal error; a folder of the user's own files
+    # (no runs.json: not a sweep's) had its index.html, results.csv and summary.md overwritten.
+    out.write_text("mine")
+    assert "exists and is not a folder" in err([str(SCENES / "cbox.xml"), "--job", "compare"])
+    out.unlink()
+    out.mkdir()
+    for name in ("index.html", "results.csv", "summary.md"):
+        (out / name).write_text("mine")
+    assert "not a layerbvh output (no runs.json)" in err([str(SCENES / "cbox.xml"), "--job", "compare"])
+    assert sorted(p.name for p in out.iterdir()) == ["index.html", "results.csv", "summary.md"]
+    assert all((out / p).read_text() == "mine" for p in ("index.html", "results.csv", "summary.md"))

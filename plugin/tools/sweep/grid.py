@@ -11,7 +11,8 @@ from types import SimpleNamespace
 import mitsuba as mi
 
 import layerbvh
-from layerbvh_mitsuba.ab.render import UserError
+from layerbvh_mitsuba import atomic
+from layerbvh_mitsuba.ab.render import UserError, check_seed
 from layerbvh_mitsuba.runtime import record
 from layerbvh_mitsuba.runtime.settings import EMBREE, Traversal, check_traversal_settings
 from layerbvh_mitsuba.tools.bench.locality import (
@@ -22,8 +23,8 @@ from layerbvh_mitsuba.tools.bench.locality import (
     request_from_args,
 )
 from layerbvh_mitsuba.tools.converge import ConvergeError, parse_configs
-from layerbvh_mitsuba.tools.sweep.slurm import SlurmSettings, check
-from layerbvh_mitsuba.tools.sweep.store import CLI_JOBS, GENERATED_RAYS, JOBS, make_points
+from layerbvh_mitsuba.tools.sweep.slurm import JOB_SCRIPT, SlurmSettings, check
+from layerbvh_mitsuba.tools.sweep.store import CLI_JOBS, GENERATED_RAYS, JOBS, RUNS_FILE, make_points
 from layerbvh_mitsuba.tools.sweep.runner import DEFAULT_TIMEOUT_S, Limits, MEMORY_SHARE, run_sweep
 
 # -- the command ------------------------------------------------------------------------------------
@@ -150,6 +151,7 @@ def grid(args) -> list[dict]:
         raise UserError(f"--res must be positive, got {args.res[0]} {args.res[1]}")
     res = list(args.res) if args.res else None
     seed = 0 if args.seed is None else args.seed
+    check_seed(seed)
     branchings = _int_list(args.branchings, "--branchings") if args.branchings else [layerbvh.DEFAULT_BRANCHING]
     for k in branchings:
         try:
@@ -245,6 +247,12 @@ def run_command(args) -> int:
         raise UserError(f"--memory-limit must be > 0 GiB, got {args.memory_limit:g}")
     settings = grid(args)
     points = make_points(args.job, expand_scenes(args.scenes), settings)
+    # A file, or a folder of the user's own files (no runs.json, nor the job script a SLURM sweep
+    # writes before it: not a sweep's), is refused before any point runs: a sweep writes
+    # index.html, results.csv and summary.md there (issue 56).
+    problem = atomic.check_output_folder(args.out, (RUNS_FILE, JOB_SCRIPT))
+    if problem:
+        raise UserError(problem)
     slurm = None
     if args.cluster == "slurm":
         slurm = check(SlurmSettings(partition=args.slurm_partition, account=args.slurm_account, cores=args.slurm_cores,
