@@ -439,6 +439,17 @@ MUTATIONS = (
              "        old = signal.signal(signal.SIGTERM, _on_sigterm)\n",
              "        old = signal.getsignal(signal.SIGTERM)\n",
              ("tests/tools/test_sweep.py::test_sigterm_stops_a_sweep_as_ctrl_c_does",)),
+    Mutation("draw_order_hard_coded", "a BSDF sample's numbers drawn in GCC's order whatever the probe of the "
+             "wheel says (issue 55: another compiler's wheel would break same-seed comparisons silently)",
+             "plugin/runtime/draw_order.py",
+             "    if bsdf_2d_first():\n",
+             "    if True:\n",
+             ("tests/runtime/test_direct.py::test_the_bsdf_draw_order_is_probed_from_the_wheel",)),
+    Mutation("draw_order_probe_inverted", "the probe reads the BSDF's two numbers the wrong way round",
+             "plugin/runtime/draw_order.py",
+             "    return two < one\n",
+             "    return two > one\n",
+             ("tests/runtime/test_direct.py::test_the_bsdf_draw_order_is_probed_from_the_wheel",)),
     Mutation("gradient_stock_side_taken_for_ours", "a gradient step given stock's earlier renders takes them for "
              "ours' side as well (the negative control then compares stock with itself)",
              "plugin/ab/gradient.py",

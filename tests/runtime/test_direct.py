@@ -30,10 +30,31 @@ CASES = [("cbox", "default", "per_ray"), ("cbox", "default", "layer_sorted"), ("
          ("paper_mix", "default", "layer_sorted"), ("glass_mirror", "2e3b", "per_ray")]
 
 
+def test_the_bsdf_draw_order_is_probed_from_the_wheel(scene_as, monkeypatch, tmp_path):
+    """Issue 55: ours drew a BSDF sample's 2D number before its 1D one because GCC, which builds
+    Mitsuba's wheels, evaluates `bsdf->sample(..., next_1d(), next_2d())` right to left; a wheel
+    built otherwise would break every same-seed comparison of direct, ptracer and volpath
+    silently. The order is now probed from the wheel (an empty cache: the probe runs here), and
+    it is the one that matters: with it ours equals stock at the same seed, with the other order
+    it does not."""
+    from layerbvh_mitsuba.runtime import draw_order  # local: its cache is reset below
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setattr(draw_order, "_answer", None)
+    probed = draw_order.bsdf_2d_first()
+    assert list((tmp_path / "cache" / "layerbvh" / "draw_order").glob("*.json")), "the answer was not kept"
+    path = _direct(scene_as, "cbox", "bsdf_only")  # every vertex's light through a BSDF sample
+    right = testing.same_seed(path, 4, (16, 16), 0, "per_ray", metrics.SAME_SEED_TOL, None)
+    assert right.passed, right.summary()
+    monkeypatch.setattr(draw_order, "_answer", not probed)
+    wrong = testing.same_seed(path, 4, (16, 16), 0, "per_ray", metrics.SAME_SEED_TOL, None)
+    assert not wrong.passed and wrong.mean_abs > 0.2 * wrong.mean_ref, wrong.summary()  # (measured 0.77 of it)
+
+
 @pytest.mark.parametrize("scene,samples,traversal", CASES)
 def test_direct_matches_stock_direct_at_the_same_seed(scene_as, scene, samples, traversal, layer_path_ran):
-    """Every sample drawn in stock's order (its BSDF sample's next_2d before next_1d: stock passes
-    both as arguments of one call, evaluated right to left), every query ours."""
+    """Every sample drawn in stock's order (its BSDF sample's next_1d and next_2d are arguments of
+    one call, drawn in the order the wheel's compiler evaluates them: runtime/draw_order.py),
+    every query ours."""
     layer = traversal.startswith("layer_")
     r = testing.assert_matches_stock(_direct(scene_as, scene, samples), spp=8, res=(32, 32), traversal=traversal,
                                      ours_props={"treelet_height": 2} if layer else None)

@@ -4,6 +4,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from layerbvh_mitsuba.runtime import draw_order
 from layerbvh_mitsuba.runtime.estimators.common import Kinds, Tracing, loop, mis_weight, skip_area_emitters
 from layerbvh_mitsuba.runtime.features import Features
 from layerbvh_mitsuba.runtime.record import bounce_kind
@@ -115,11 +116,9 @@ class DirectEstimator:
 
         def bsdf_sample(sampler, i, result):
             """BSDF sampling: the sampled direction through our closest-hit traversal."""
-            # Stock passes next_1d() and next_2d() as arguments of one call, and its build evaluates
-            # arguments right to left: next_2d is drawn first (measured: the other order gives
-            # other BSDF samples).
-            sample_2 = sampler.next_2d(active)
-            sample_1 = sampler.next_1d(active)
+            # Stock passes next_1d() and next_2d() as arguments of one call, whose evaluation order
+            # its compiler chose (GCC: right to left): drawn in the order probed from the wheel.
+            sample_1, sample_2 = draw_order.draws(sampler, active)
             bs, bsdf_val = bsdf.sample(ctx, si, sample_1, sample_2, active)
             if not use.emitter_hits.on:
                 return sampler, i + 1, result  # nothing a ray reaches emits (the samples are drawn all the same)

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
+from layerbvh_mitsuba.runtime import draw_order
 from layerbvh_mitsuba.runtime.estimators.common import Kinds, Tracing, loop, path_kinds, read_depths, \
     skip_area_emitters
 from layerbvh_mitsuba.runtime.features import Features
@@ -73,9 +74,9 @@ class MediaWalk:
     drawn first (``next_1d``). Transmittance towards an emitter is estimated by stepping along
     the shadow ray with closest-hit queries: through null surfaces (their null transmission) and
     media boundaries, with ratio tracking in each medium (``next_1d`` per step). Sampler use is
-    in exactly this order and with stock's masks (stock's build evaluates a call's arguments
-    right to left: the 2D sample before the 1D one), so a same-seed render matches stock up to
-    floating-point noise.
+    in exactly this order and with stock's masks (the 1D and 2D numbers of a BSDF or phase
+    sample in the order stock's build evaluates a call's arguments, probed from the wheel:
+    runtime/draw_order.py), so a same-seed render matches stock up to floating-point noise.
 
     The feature plan leaves out what the scene does not need: free-flight sampling when it holds
     no medium, and the closest-hit transmittance steps when it has neither a medium nor a
@@ -255,8 +256,7 @@ class MediaWalk:
                 sampler.next_2d(active_e)  # stock's emitter sample, drawn all the same
             w = W.scattered_in_medium(w, act_medium_scatter)
             phase = dr.select(act_medium_scatter, phase, dr.zeros(mi.PhaseFunctionPtr))
-            sample_2 = sampler.next_2d(act_medium_scatter)  # (stock: right to left, see the class docstring)
-            sample_1 = sampler.next_1d(act_medium_scatter)
+            sample_1, sample_2 = draw_order.draws(sampler, act_medium_scatter)  # (stock's order: class docstring)
             wo, phase_weight, phase_pdf = phase.sample(phase_ctx, mei, sample_1, sample_2, act_medium_scatter)
             act_medium_scatter, w = W.phase_sampled(w, phase_weight, phase_pdf, channel, act_medium_scatter)
             ray = dr.select(act_medium_scatter, mei.spawn_ray(wo), ray)
@@ -285,8 +285,7 @@ class MediaWalk:
         else:
             sampler.next_2d(active_e)  # stock's emitter sample, drawn all the same: the sequence stays stock's
 
-        sample_2 = sampler.next_2d(active_surface)  # (stock: right to left)
-        sample_1 = sampler.next_1d(active_surface)
+        sample_1, sample_2 = draw_order.draws(sampler, active_surface)
         bs, bsdf_weight = bsdf.sample(ctx, si, sample_1, sample_2, active_surface)
         active_surface, invalid_sample, w = W.bsdf_sampled(w, bs, bsdf_weight, si, channel, active_surface)
         eta = dr.select(active_surface, eta * bs.eta, eta)

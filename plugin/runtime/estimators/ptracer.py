@@ -4,6 +4,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from layerbvh_mitsuba.runtime import draw_order
 from layerbvh_mitsuba.runtime.estimators.common import Kinds, Tracing, loop, read_depths
 from layerbvh_mitsuba.runtime.features import Features
 
@@ -34,9 +35,10 @@ class ParticleTracerEstimator:
     per pass, [shutter 1D if the shutter is open for a while] emitter 1D, infinite-emitter 2D
     and finite-emitter 2D (both drawn in a JIT variant, where stock runs both branches), sensor
     2D, wavelength 1D (step 1, unless skipped: then none of them); [shutter 1D] wavelength 1D,
-    direction 2D, position 2D (step 2); per path vertex: sensor 2D, the BSDF's 2D **before** its
-    1D (stock's wheel is built with GCC, which evaluates ``bsdf->sample``'s arguments right to
-    left), Russian roulette 1D (drawn at every vertex in a JIT variant, used from ``rr_depth``).
+    direction 2D, position 2D (step 2); per path vertex: sensor 2D, the BSDF's 1D and 2D in
+    the order stock's build evaluates ``bsdf->sample``'s arguments (GCC: right to left, the 2D
+    first; probed from the wheel, runtime/draw_order.py), Russian roulette 1D (drawn at every
+    vertex in a JIT variant, used from ``rr_depth``).
     Properties: ``max_depth`` (-1), ``rr_depth`` (5), ``hide_emitters`` (false); the adjoint
     base reads ``samples_per_pass``."""
 
@@ -130,8 +132,8 @@ class ParticleTracerEstimator:
             bsdf = si.bsdf(ray)
             sensor_ds, sensor_weight = sensor.sample_direction(si, sampler.next_2d(), active)
             self._connect(scene, si, sensor_ds, bsdf, throughput * sensor_weight, block, sample_scale, active, tr)
-            s2 = sampler.next_2d(active)  # (stock's order: see the class docstring)
-            bs, bsdf_val = bsdf.sample(mi.BSDFContext(_IMPORTANCE), si, sampler.next_1d(active), s2, active)
+            s1, s2 = draw_order.draws(sampler, active)  # (stock's order: see the class docstring)
+            bs, bsdf_val = bsdf.sample(mi.BSDFContext(_IMPORTANCE), si, s1, s2, active)
             # Light leaks through shading normals are dropped; the adjoint's correction (Veach, p. 155).
             wi_dot_n, wo_dot_n = dr.dot(si.n, -ray.d), dr.dot(si.n, si.to_world(bs.wo))
             active &= (wi_dot_n * mi.Frame3f.cos_theta(si.wi) > 0) & (wo_dot_n * mi.Frame3f.cos_theta(bs.wo) > 0)
