@@ -450,6 +450,12 @@ MUTATIONS = (
              "    return two < one\n",
              "    return two > one\n",
              ("tests/runtime/test_direct.py::test_the_bsdf_draw_order_is_probed_from_the_wheel",)),
+    Mutation("cachegrind_not_measured_again", "a disturbed cachegrind measurement stops the check at once, as "
+             "one did on a loaded machine (issue 56)",
+             "scripts/check_model_cachegrind.py",
+             "ATTEMPTS = 3  # measurements of a (D1, n) pair before a disturbed one stops the check\n",
+             "ATTEMPTS = 1  # measurements of a (D1, n) pair before a disturbed one stops the check\n",
+             ("tests/tools/test_model_cachegrind.py::test_a_disturbed_measurement_is_measured_again",)),
     Mutation("gradient_stock_side_taken_for_ours", "a gradient step given stock's earlier renders takes them for "
              "ours' side as well (the negative control then compares stock with itself)",
              "plugin/ab/gradient.py",
