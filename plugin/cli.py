@@ -25,8 +25,8 @@ from layerbvh_mitsuba.ab.compare import (
     ours_props,
     wrapped,
 )
-from layerbvh_mitsuba.ab.render import (UserError, check_seed, load_integrator, load_scene, render_channels,
-    render_passes, scene_spp, use_variant, write_exr)
+from layerbvh_mitsuba.ab.render import (UserError, check_seed, check_spp, load_integrator, load_scene,
+    render_channels, render_passes, scene_spp, use_variant, write_exr)
 from layerbvh_mitsuba.ab.scene_integrator import SUPPORTED, path_settings
 from layerbvh_mitsuba.ab.report import REPORT_MARKER, heatmap_png, write_comparison
 from layerbvh_mitsuba.runtime.scene_geometry import UnsupportedShapeError
@@ -136,8 +136,7 @@ def _check_args(args):
         except ValueError as e:
             raise UserError(f"--{e}") from None
         return
-    if args.spp is not None and args.spp < 1:
-        raise UserError(f"--spp must be >= 1, got {args.spp}")
+    check_spp(args.spp)
     check_seed(args.seed)
     try:  # the integrator's own rules, named as the option: "--treelet-height must ..."
         args.traversal = Traversal.parse(args.traversal)

@@ -456,6 +456,12 @@ MUTATIONS = (
              "ATTEMPTS = 3  # measurements of a (D1, n) pair before a disturbed one stops the check\n",
              "ATTEMPTS = 1  # measurements of a (D1, n) pair before a disturbed one stops the check\n",
              ("tests/tools/test_model_cachegrind.py::test_a_disturbed_measurement_is_measured_again",)),
+    Mutation("ptracer_samples_per_pass_zero_rendered", "a ptracer scene with samples_per_pass 0 is rendered: "
+             "stock's render divides by it and the process dies of SIGFPE (issue 56)",
+             "plugin/ab/scene_integrator.py",
+             "        if props[\"samples_per_pass\"] < 1:  # (stock's render divides by it: SIGFPE, issue 56)\n",
+             "        if False:\n",
+             ("tests/tools/test_cli.py::test_legal_scene_numbers_and_seeds_a_sampler_cannot_take_are_one_line",)),
     Mutation("gradient_stock_side_taken_for_ours", "a gradient step given stock's earlier renders takes them for "
              "ours' side as well (the negative control then compares stock with itself)",
              "plugin/ab/gradient.py",

@@ -47,6 +47,16 @@ def use_variant(variant: str | None = None):
 SEED_MAX = (1 << 32) - 1  # Mitsuba's sampler seed is a 32-bit unsigned integer (mi.render's `seed`)
 
 
+SPP_MAX = (1 << 32) - 1  # ... and its sample count one too (a sampler's sample_count)
+
+
+def check_spp(spp: int | None, option: str = "--spp") -> None:
+    """Refuse (UserError, one line) a sample count below 1, or one Mitsuba's sampler cannot hold
+    (10^14 was taken and rendered for ever: issue 56)."""
+    if spp is not None and not 1 <= spp <= SPP_MAX:
+        raise UserError(f"{option} must be from 1 to {SPP_MAX} (Mitsuba's sample count is 32-bit), got {spp}")
+
+
 def check_seed(seed: int, option: str = "--seed") -> None:
     """Refuse (UserError, one line) a seed Mitsuba's sampler cannot take."""
     if not 0 <= seed <= SEED_MAX:

@@ -274,6 +274,9 @@ def path_settings(mi, scene, as_path: bool = False, scene_path=None, params: dic
         props["hide_emitters"] = inner_xml["hide_emitters"].lower() == "true"
     if estimator == "ptracer" and "samples_per_pass" in inner_xml:  # (its passes draw their own samples)
         props["samples_per_pass"] = int(inner_xml["samples_per_pass"])
+        if props["samples_per_pass"] < 1:  # (stock's render divides by it: SIGFPE, issue 56)
+            raise UserError(f"the scene's ptracer has samples_per_pass {props['samples_per_pass']}; it must be >= 1 "
+                            f"(or left out: all samples in one pass)")
     if estimator == "volpathmis" and "use_spectral_mis" in inner_xml:  # (only the XML has it)
         props["use_spectral_mis"] = inner_xml["use_spectral_mis"].lower() == "true"
     note = ""

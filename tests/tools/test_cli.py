@@ -87,24 +87,46 @@ def _tiny(tmp_path, name: str, width: int = 4, height: int = 4, spp: int = 4) ->
 
 
 def test_legal_scene_numbers_and_seeds_a_sampler_cannot_take_are_one_line(tmp_path, capsys):
-    """Issue 56: a scene's sampler with sample_count 0 (no --spp) died of SIGFPE; a 0x0 film (no
-    --res) was an internal error inside mi.render; --seed -1 or 2^32 gave two lines and an internal
-    error; a texture that is a Git LFS pointer failed naming no file. Each is one line naming it,
+    """Issue 56: a scene's sampler with sample_count 0 (no --spp) died of SIGFPE, and so did a
+    ptracer with samples_per_pass 0; a 0x0 film (no --res) was an internal error inside
+    mi.render; --seed -1 or 2^32 gave two lines and an internal error; --spp 10^14 rendered for
+    ever; a texture that is a Git LFS pointer failed naming no file. Each is one line naming it,
     exit 2, nothing written. A seed a user may legally give (a Unix time) renders in several
     passes: the pass seeds stay within 32 bits."""
     zero_spp, zero_film = _tiny(tmp_path, "zero_spp", spp=0), _tiny(tmp_path, "zero_film", 0, 0)
     out = tmp_path / "o.exr"
+
+    def variant(name, old, new):  # a tiny scene with one value changed
+        path = Path(_tiny(tmp_path, name))
+        path.write_text(path.read_text().replace(old, new, 1))
+        return path
+    crop0 = variant("crop0", "</film>", '<integer name="crop_width" value="0"/></film>')
+    ptracer0 = variant("ptracer0", "<sensor", '<integrator type="ptracer"><integer name="samples_per_pass" value="0"/>'
+                                             '</integrator><sensor')
+    rr0 = variant("rr0", "<sensor", '<integrator type="path"><integer name="rr_depth" value="0"/></integrator><sensor')
+    cbox = SCENES / "cbox.xml"
+    # The class (issue 56): every number of a scene that reaches a division or an allocation, and
+    # every CLI number's range, one line each.
     for cmd, scene, extra, says in (
             ("render", zero_spp, [], "sample_count 0"), ("compare", zero_spp, [], "sample_count 0"),
             ("render", zero_film, [], "its film is 0x0 pixels"), ("compare", zero_film, ["--spp", "2"], "its film is 0x0"),
-            ("render", SCENES / "cbox.xml", ["--seed", "-1"], "--seed must be from 0 to 4294967295"),
-            ("compare", SCENES / "cbox.xml", ["--seed", "4294967296"], "--seed must be from 0 to 4294967295")):
+            ("render", crop0, [], "its film is 0x4 pixels"),
+            ("compare", ptracer0, [], "samples_per_pass 0; it must be >= 1"),  # (stock dies of SIGFPE)
+            ("render", rr0, [], '"rr_depth" must be set to a value greater than zero'),
+            ("render", cbox, ["--seed", "-1"], "--seed must be from 0 to 4294967295"),
+            ("compare", cbox, ["--seed", "4294967296"], "--seed must be from 0 to 4294967295"),
+            ("compare", cbox, ["--spp", "0"], "--spp must be from 1 to 4294967295"),
+            ("render", cbox, ["--spp", str(10 ** 14)], "--spp must be from 1 to 4294967295"),  # (rendered for ever)
+            ("render", cbox, ["--res", "0", "8"], "--res must be positive"),
+            ("render", cbox, ["--treelet-height", "0"], "--treelet-height must be in [1, 64]"),
+            ("render", cbox, ["--leaf-size", "0"], "--leaf-size must be in [1, 16]"),
+            ("render", cbox, ["--branching", "3"], "--branching must be one of 2, 4, 8")):
         target = ["-o", str(out)] if cmd == "render" else ["--out", str(tmp_path / "cmp")]
         assert main([cmd, str(scene), *extra, *target, "--no-progress"]) == 2, (cmd, scene, extra)
         assert says in _err(capsys), (cmd, scene, extra)
-    assert main(["sweep", str(SCENES / "cbox.xml"), "--job", "compare", "--seed", "-1", "--out",
-                 str(tmp_path / "sw")]) == 2
-    assert "--seed must be from 0" in _err(capsys)
+    for extra, says in ((["--seed", "-1"], "--seed must be from 0"), (["--spp", "4,0"], "--spp must be from 1")):
+        assert main(["sweep", str(cbox), "--job", "compare", *extra, "--out", str(tmp_path / "sw")]) == 2
+        assert says in _err(capsys), extra
     assert not out.exists() and not (tmp_path / "cmp").exists() and not (tmp_path / "sw").exists()
     # A texture that is a Git LFS pointer (a clone without `git lfs pull`): Mitsuba says "Bitmap:
     # Unknown file format!" and names no file; the line names it.

@@ -12,7 +12,7 @@ import mitsuba as mi
 
 import layerbvh
 from layerbvh_mitsuba import atomic
-from layerbvh_mitsuba.ab.render import UserError, check_seed
+from layerbvh_mitsuba.ab.render import UserError, check_seed, check_spp
 from layerbvh_mitsuba.runtime import record
 from layerbvh_mitsuba.runtime.settings import EMBREE, Traversal, check_traversal_settings
 from layerbvh_mitsuba.tools.bench.locality import (
@@ -160,8 +160,8 @@ def grid(args) -> list[dict]:
             raise UserError(f"--branchings: {e}") from None
     if args.job == "compare":
         spps = _int_list(args.spp, "--spp") if args.spp else [None]
-        if any(s is not None and s < 1 for s in spps):
-            raise UserError(f"--spp must be >= 1, got {args.spp}")
+        for s in spps:
+            check_spp(s)
         traversals = _names(args.traversal or layerbvh.AUTO)
         heights = _int_list(args.treelet_heights, "--treelet-heights") if args.treelet_heights else \
             [layerbvh.DEFAULT_TREELET_HEIGHT]
