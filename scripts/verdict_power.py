@@ -75,7 +75,8 @@ def run(scenes: list[str], factors: list[float], seeds: int) -> None:
                                     "rejected": bool(fam.rejected) if fam else None,
                                     "mde": v.mde(), "tests": sum(fam.counts.values()) if fam else 0,
                                     "strongest": fam.rejections[0].describe() if fam and fam.rejections else None,
-                                    "seconds": round(time.perf_counter() - t0, 2)}
+                                    "seconds": round(time.perf_counter() - t0, 2),
+                                    "llvm_lanes": layerbvh.llvm_vector_width()}
                 _save(doc)
                 print(f"{key}: {v.label} ({doc['runs'][key]['seconds']} s)", flush=True)
 
@@ -85,8 +86,11 @@ def table() -> str:
     runs = list(doc["runs"].values())
     names = [n for n in SCENES if any(r["scene"] == n for r in runs)]
     factors = sorted({r["factor"] for r in runs})
-    lines = [f"Measured on {doc['meta'].get('cpu', '?')} (Dr.Jit LLVM {doc['meta'].get('llvm_lanes', '?')} lanes); "
-             f"`.venv/bin/python scripts/verdict_power.py` (docs/verdict_power/results.json).", "",
+    lanes = {f: sorted({r.get("llvm_lanes", "?") for r in runs if r["factor"] == f}) for f in factors}
+    by = "; ".join(f"x{f:g}: {', '.join(map(str, lanes[f]))} lanes" for f in factors)
+    lines = [f"Measured on {doc['meta'].get('cpu', '?')}, Dr.Jit LLVM at the lanes each factor's runs had "
+             f"({by}: 16 is AVX-512, 8 AVX2); `.venv/bin/python scripts/verdict_power.py` "
+             f"(docs/verdict_power/results.json).", "",
              "Share of seeds whose verdict is \"differs\" (factor 1: the false-alarm rate; else the detection rate), "
              "and the median MDE of the image mean stated by the unmodified scene's verdicts:", "",
              "| scene | settings | " + " | ".join(f"x{f:g}" for f in factors) + " | median MDE (image) |",
