@@ -45,9 +45,23 @@ DRJIT_LLVM_BLOCK_LANES = 16384
 
 CPU_CACHE_DIR = Path("/sys/devices/system/cpu/cpu0/cache")
 CPU_INFO = Path("/proc/cpuinfo")
-# /proc/cpuinfo flag -> lanes of 32-bit floats, widest first.
-SIMD_LANES_BY_FLAG = (("avx512f", 16), ("avx2", 8))
+# /proc/cpuinfo flag -> the SIMD's name and its lanes of 32-bit floats, widest first (also what
+# scripts/test.sh prints first, issue 64).
+SIMD_BY_FLAG = (("avx512f", "AVX-512", 16), ("avx2", "AVX2", 8))
 SIMD_LANES_DEFAULT = 4  # SSE / NEON
+
+
+def cpu_flags(cpuinfo: Path = CPU_INFO) -> set[str]:
+    """The flags /proc/cpuinfo lists (empty where there is none)."""
+    try:
+        return set(cpuinfo.read_text().split())
+    except OSError:
+        return set()
+
+
+def simd_name(flags: set[str]) -> str:
+    """"AVX-512", "AVX2" or "neither AVX2 nor AVX-512" for a CPU's flags."""
+    return next((name for flag, name, _ in SIMD_BY_FLAG if flag in flags), "neither AVX2 nor AVX-512")
 # Used only where /sys has no cache description (containers without sysfs, other OSes): typical
 # current x86 server core, 64-byte lines.
 FALLBACK_CPU_LEVELS = (
@@ -229,7 +243,7 @@ def _read_cpuinfo(cpuinfo: Path) -> tuple[str, int]:
             model = value.strip()
         elif key in ("flags", "Features") and not flags:
             flags = set(value.split())
-    lanes = next((n for flag, n in SIMD_LANES_BY_FLAG if flag in flags), SIMD_LANES_DEFAULT)
+    lanes = next((n for flag, _, n in SIMD_BY_FLAG if flag in flags), SIMD_LANES_DEFAULT)
     return model, lanes
 
 

@@ -20,8 +20,7 @@ cd "$root"
 unset PYTHONDONTWRITEBYTECODE
 # The machine first (issue 64): a failure reads against its CPU, its SIMD and Dr.Jit's lanes.
 .venv/bin/python -c 'import layerbvh as L, os
-f = open("/proc/cpuinfo").read().split() if os.path.exists("/proc/cpuinfo") else []
-simd = "AVX-512" if "avx512f" in f else "AVX2" if "avx2" in f else "neither AVX2 nor AVX-512"
+simd = L.memmodel.simd_name(L.memmodel.cpu_flags())
 isa = os.environ.get(L.backend.LLVM_ISA_ENV)
 print(f"test.sh: CPU {L.cpu_model()}, {os.cpu_count()} cores, {simd}; Dr.Jit LLVM {L.llvm_isa()}, "
       f"{L.llvm_vector_width()} lanes" + (f" ({L.backend.LLVM_ISA_ENV}={isa})" if isa else ""))' || true

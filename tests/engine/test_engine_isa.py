@@ -11,7 +11,7 @@ import pytest
 
 import layerbvh
 from layerbvh import backend as be
-from layerbvh import meshes
+from layerbvh import memmodel, meshes
 
 _TRACE = """
 import json, sys, numpy as np, layerbvh
@@ -24,14 +24,6 @@ print(json.dumps({"isa": layerbvh.llvm_isa(), "lanes": layerbvh.llvm_vector_widt
 """
 
 
-def _cpu_flags() -> set[str]:
-    try:
-        with open("/proc/cpuinfo") as fh:
-            return set(fh.read().split())
-    except OSError:
-        return set()
-
-
 def _run(code: str, isa: str | None, *args) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if k != be.LLVM_ISA_ENV}
     if isa is not None:
@@ -40,7 +32,7 @@ def _run(code: str, isa: str | None, *args) -> subprocess.CompletedProcess:
                           timeout=300)
 
 
-@pytest.mark.skipif("avx2" not in _cpu_flags(), reason="this CPU has no AVX2")
+@pytest.mark.skipif("avx2" not in memmodel.cpu_flags(), reason="this CPU has no AVX2")
 def test_avx2_kernels_trace_the_same_hits(tmp_path):
     """LAYERBVH_LLVM_ISA=avx2: kernels compile for 8 lanes without AVX-512, and the traversal
     still returns the closest hits it returns at the CPU's own ISA (ties on shared edges may take
@@ -63,7 +55,7 @@ def test_an_isa_the_cpu_lacks_or_a_bad_name_is_one_line():
     assert bad.returncode != 0 and bad.stderr.strip().count("\n") == 0, bad.stderr
     assert "LAYERBVH_LLVM_ISA" in bad.stderr and "avx2, avx512" in bad.stderr and "Traceback" not in bad.stderr
     wide = _run("import layerbvh; print(layerbvh.llvm_isa(), layerbvh.llvm_vector_width())", "avx512")
-    if "avx512f" in _cpu_flags():
+    if "avx512f" in memmodel.cpu_flags():
         assert wide.returncode == 0 and wide.stdout.split() == ["avx512", "16"], wide.stderr
     else:
         assert wide.returncode != 0 and "has no avx512f" in wide.stderr and "Traceback" not in wide.stderr
