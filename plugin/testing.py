@@ -66,12 +66,14 @@ def load(scene_path, res=None, **params):
 
 
 def same_seed(scene_path, spp=16, res=(32, 32), seed=0, traversal="per_ray", tol=SAME_SEED_TOL, ours_props=None,
-              min_frac=SAME_SEED_MIN_FRAC, max_mean_rel=SAME_SEED_MAX_MEAN_REL, **params) -> SameSeedResult:
+              min_frac=SAME_SEED_MIN_FRAC, max_mean_rel=SAME_SEED_MAX_MEAN_REL, ours_modify=None,
+              **params) -> SameSeedResult:
     """Same-seed stock and layerbvh renders of an XML scene (`params`: its $parameters;
-    `ours_props`: extra layerbvh integrator properties such as treelet_height, batch_rays),
+    `ours_props`: extra layerbvh integrator properties such as treelet_height, batch_rays;
+    `ours_modify(params)`: a change to ours' copy of the scene, a negative control's),
     measured by the same-seed criterion (metrics.same_seed_verdict)."""
     c = compare(use_variant(), settings(scene_path, spp, res, seed, traversal, ours_props, params,
-                                        statistical_step=False))
+                                        statistical_step=False, ours_modify=ours_modify))
     v = same_seed_verdict(c.stock, c.ours, tol, min_frac, max_mean_rel)
     return SameSeedResult(stock=c.stock, ours=c.ours, ours_stats=c.stats, passed=v["passed"],
                           compared_as=c.path.compared_as, **v["values"])
