@@ -48,6 +48,13 @@ from layerbvh_mitsuba.runtime.settings import Traversal
 c = compare(mi, CompareSettings(scene={str(STOKES)!r}, res=(16, 16), spp=4, seed=2,
                                 traversal=Traversal.parse("layer_sorted"), treelet_height=2))
 out(case="compare", label=c.verdict.label, shape=list(c.ours.shape), resolution=list(c.resolution))
+# Its negative control at the same settings (issue 55 item 3): every reflectance of ours' copy x1.02.
+from layerbvh_mitsuba import testing
+bad = compare(mi, CompareSettings(scene={str(STOKES)!r}, res=(16, 16), spp=4, seed=2,
+                                  traversal=Traversal.parse("layer_sorted"), treelet_height=2,
+                                  ours_modify=testing.scaled_reflectances(1.02)))
+out(case="control", label=bad.verdict.label, strongest=bad.verdict.family.rejections[0].describe()
+    if bad.verdict.family and bad.verdict.family.rejections else None)
 z = statistical_step(mi, {str(STOKES)!r}, (16, 16), 16 * 16 * 64, ps.stock_inner(), {{"type": "layerbvh", **ps.props}},
                      wrap=ps.integrator)
 out(case="statistical", resolution=list(z.resolution), passed=z.passed, summary=z.family.summary(), pixels=z.pixels,
@@ -113,6 +120,8 @@ def test_compare_judges_the_five_stokes_panels(polarized):
     z = polarized[("statistical", None)]
     assert z["pixels"] == 5 * z["resolution"][0] * z["resolution"][1] and z["passed"], z
     assert z["pixel_tests"] == 3 * z["pixels"], z  # every panel's pixels tested, per channel
+    bad = polarized[("control", None)]  # every reflectance x1.02 at the same settings
+    assert bad["label"] == "differs beyond noise", bad
 
 
 def test_render_writes_the_stokes_channels_under_stocks_names(polarized):
