@@ -29,6 +29,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from layerbvh import memmodel
+
 
 @dataclass(frozen=True)
 class Mutation:
@@ -423,7 +425,7 @@ MUTATIONS = (
     Mutation("lfs_texture_not_named", "a scene whose texture is a Git LFS pointer fails with Mitsuba's "
              "'Bitmap: Unknown file format!' alone, naming no file (issue 56)",
              "plugin/ab/render.py",
-             "        named = _file_behind(str(e), path)\n",
+             "        named = _file_behind(str(e))\n",
              "        named = ''\n",
              ("tests/tools/test_cli.py::test_legal_scene_numbers_and_seeds_a_sampler_cannot_take_are_one_line",)),
     Mutation("zero_scale_instance_kept", "an instance scaled to zero is handed to the engine (refused as "
@@ -654,7 +656,7 @@ def main(argv=None) -> int:
                 return 2
             print(f"baseline: {len(tests)} tests pass unmutated", flush=True)
         bad = skipped = 0
-        flags = set(Path("/proc/cpuinfo").read_text().split()) if Path("/proc/cpuinfo").exists() else set()
+        flags = memmodel.cpu_flags()
         for m in chosen:
             if m.cpu_flag and m.cpu_flag not in flags:  # (an AVX2 CPU's ISA override changes nothing to catch)
                 print(f"{m.name:34s} skipped: this CPU has no {m.cpu_flag}, which the bug needs to show", flush=True)

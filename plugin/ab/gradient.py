@@ -145,12 +145,11 @@ def paired_over_renders(stock: np.ndarray, ours: np.ndarray, alpha: float) -> di
     count = d_pix[0].size + d_sum[0].size
     threshold = alpha / count
 
-    def test(d, scale, cells):
-        excess = np.abs(d.mean(0)) - hypotheses.MARGIN * (scale + hypotheses.SCALE_FLOOR * cells)
-        se = d.std(0, ddof=1) / np.sqrt(n)
-        stat = np.where(se > 0, excess / np.where(se > 0, se, 1.0), np.where(excess > 0, np.inf, 0.0))
-        p = np.where(excess > 0, hypotheses._tail_p(np.maximum(stat, 0.0), n - 1), 1.0)
-        return p, p < threshold
+    def test(d, scale, cells):  # (the verdict's statistic and margin: hypotheses.statistics)
+        t = hypotheses.Tests(hypotheses.PAIRED, "pixel", d.mean(0), d.std(0, ddof=1) / np.sqrt(n), scale,
+                             np.full(scale.shape, cells), df=n - 1)
+        excess, _, p = hypotheses.statistics(t)
+        return p, (excess > 0) & (p < threshold)
     p_pix, bad_pix = test(d_pix, s_pix, 1)
     p_sum, bad_sum = test(d_sum, s_sum, pixels)
     passed = ~bad_pix.any(axis=-1) & ~bad_sum.any()

@@ -261,6 +261,15 @@ def _welch_df(va: np.ndarray, vb: np.ndarray, na: int, nb: int) -> np.ndarray:
     return np.where(den > 0, num / np.maximum(den, 1e-300), math.inf).clip(1.0)
 
 
+def statistics(t: Tests) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per test: the excess |estimate| - margin, the statistic excess / se (a zero se: inf where
+    the excess is positive) and its two-sided p (1 within the margin)."""
+    excess = np.abs(t.estimate) - t.margin()
+    safe = np.where(t.se > 0, t.se, 1.0)
+    stat = np.where(t.se > 0, excess / safe, np.where(excess > 0, np.inf, 0.0))
+    return excess, stat, _tail_p(np.maximum(stat, 0.0), t.df)
+
+
 # -- the family ------------------------------------------------------------------------------------------
 
 @dataclass
@@ -313,10 +322,7 @@ class Family:
         return ALPHA * SHARES[level] / max(1, self.counts[level])
 
     def _decide(self, t: Tests) -> tuple[np.ndarray, np.ndarray]:
-        excess = np.abs(t.estimate) - t.margin()
-        safe = np.where(t.se > 0, t.se, 1.0)
-        stat = np.where(t.se > 0, excess / safe, np.where(excess > 0, np.inf, 0.0))
-        p = _tail_p(np.maximum(stat, 0.0), t.df)
+        excess, stat, p = statistics(t)
         return stat, (excess > 0) & (p < self.alpha_each(t.level))
 
     @property

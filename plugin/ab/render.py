@@ -118,7 +118,7 @@ def load_scene(mi, path: str, res=None, **params):
             scene = mi.load_file(str(path), **params)
     except Exception as e:  # Mitsuba raises RuntimeError with a multi-line message
         line = str(e).strip().splitlines()[-1]
-        named = _file_behind(str(e), path)
+        named = _file_behind(str(e))
         if named:
             line += f" ({named})"
         if "only be used in polarized mode" in line:  # (Mitsuba's stokes integrator)
@@ -142,10 +142,10 @@ def load_scene(mi, path: str, res=None, **params):
 
 LFS_POINTER = b"version https://git-lfs.github.com/spec/"  # how a Git LFS pointer file begins
 _AT = re.compile(r"At (.+?) \(line (\d+), col (\d+)\)")
-_FILENAME = re.compile(r'<string\b[^>]*\bname="filename"[^>]*>|<string\b[^>]*\bvalue="[^"]*"[^>]*\bname="filename"[^>]*>')
+_FILENAME = re.compile(r'<string\b[^>]*\bname="filename"[^>]*>')  # (its value before or after the name)
 
 
-def _file_behind(message: str, scene_path) -> str:
+def _file_behind(message: str) -> str:
     """The file a failed plugin was reading, named (Mitsuba's "Bitmap: Unknown file format!" names
     none, issue 56): the first `filename` at or after the XML position the message gives, and
     whether it is missing or a Git LFS pointer (a clone without `git lfs pull`). '' if none."""

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import mitsuba as mi
 
+from layerbvh_mitsuba import atomic
 from layerbvh_mitsuba.runtime.cache import cache_dir
 
 _answer: bool | None = None  # this process's: the 2D sample first
@@ -54,9 +55,7 @@ def bsdf_2d_first() -> bool:
                 raise RuntimeError(f"the probe of stock's draw order failed: {out.stderr.strip()[-300:]}")
             _answer = bool(json.loads(out.stdout.strip().splitlines()[-1])["bsdf_2d_first"])
             path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(f".tmp{os.getpid()}")
-            tmp.write_text(json.dumps({"bsdf_2d_first": _answer}))
-            os.replace(tmp, path)
+            atomic.write_text(path, json.dumps({"bsdf_2d_first": _answer}))
     return _answer
 
 
