@@ -50,8 +50,12 @@ def test_primal_same_seed_as_stock(scene_as, integrator, name, traversal):
     take the other triangle: prb there leaves one pixel of 1024 outside the tolerance on AVX-512
     and with LAYERBVH_LLVM_ISA=avx2 (docs/cpu_margins/table.json), exactly the default
     criterion's room, so another CPU may fail it by one pixel (issue 64): paper_mix gets 1% (ten
-    pixels), and the mean criterion (1e-4 of the mean pixel; measured 0.02-0.12 of it) stays."""
-    room = {"min_frac": 0.99} if name == "paper_mix" else {}
+    pixels). One such pixel also moves the mean: a fresh clone on an AVX2 machine had prbvolpath's
+    single diverged pixel off by 1.87, a mean |diff| of 1.1e-3 of the mean pixel against the
+    default 1e-4 (three runs before it: none). paper_mix's mean criterion is 2e-3 (two such
+    pixels); every reflectance x1.02 still fails it (measured above 3e-3:
+    test_primal_negative_control_at_the_primal_settings)."""
+    room = {"min_frac": 0.99, "max_mean_rel": 2e-3} if name == "paper_mix" else {}
     r = testing.assert_matches_stock(_as(scene_as, name, integrator), spp=8, res=(32, 32), traversal=traversal,
                                      ours_props=_ours(traversal), **room)
     assert r.compared_as == integrator and r.mean_ref > 0.01, (r.compared_as, r.summary())
