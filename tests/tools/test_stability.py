@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import layerbvh
-from layerbvh_mitsuba.tools.stability import cases as sc, mesh_cases
+from layerbvh_mitsuba.tools.stability import cases as sc, mesh_cases, scale_cases
 
 
 @pytest.mark.parametrize("name", list(sc.CASES))
@@ -16,7 +16,10 @@ def test_case(name):
     # A case that tried nothing would pass its rule: ray cases trace at least 1,000 rays (the
     # floor of _n), image cases render at least 8x8 pixels.
     assert r.tried >= (1000 if r.level == "rays" else 64), f"{name}: tried only {r.tried}"
-    if r.level == "image":  # the image rule's parts, as measured (the rule itself is in r.passed)
+    if name == "extreme_scales":  # its rule's parts (scale_cases.extreme_scales)
+        assert r.figures["steps_per_query"] > 1, r.criterion
+        assert abs(r.figures["control_rel"]) > scale_cases.TOLERANCE, f"the negative control passed: {r.criterion}"
+    elif r.level == "image":  # the image rule's parts, as measured (the rule itself is in r.passed)
         assert r.figures["steps_per_query"] > 1 and r.figures["treelets"] > 1, r.criterion
         assert r.figures["control_frac"] < 0.99, f"{name}: the negative control passed: {r.criterion}"
 
@@ -47,3 +50,12 @@ def test_exact_check_names_the_wrong_side():
     answers = {"right": np.array([near, miss]), "farther": np.array([far, miss]), "fake": np.array([near, near])}
     wrong = embree.wrong_answers(v, f, o, d, answers, np.array([0, 1]))
     assert wrong == {"right": 0, "farther": 1, "fake": 1}
+
+
+def test_the_scale_referee_names_the_side_that_matches():
+    """scale_cases.which_matches: within the tolerance of the referee's mean, finite, is a match."""
+    row = {"ours_rel": 0.004, "stock_rel": -0.13, "ours_nonfinite": 0, "stock_nonfinite": 0}
+    assert scale_cases.which_matches(row) == "ours"
+    assert scale_cases.which_matches({**row, "ours_rel": -0.011}) == "neither"
+    assert scale_cases.which_matches({**row, "stock_rel": 0.009}) == "both"
+    assert scale_cases.which_matches({**row, "ours_nonfinite": 1, "stock_rel": 0.0}) == "stock"

@@ -25,6 +25,7 @@ from __future__ import annotations
 from layerbvh_mitsuba.tools.stability import ray_cases  # noqa: F401  (isort: keep this order)
 from layerbvh_mitsuba.tools.stability import mesh_cases  # noqa: F401
 from layerbvh_mitsuba.tools.stability import image_cases  # noqa: F401
+from layerbvh_mitsuba.tools.stability import scale_cases  # noqa: F401
 from layerbvh_mitsuba.tools.stability.machinery import CASES, RAYS, CaseResult, run_case
 
 __all__ = ["CASES", "RAYS", "CaseResult", "run_case"]

@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from layerbvh_mitsuba import atomic
 from layerbvh_mitsuba.repo import ROOT
-from layerbvh_mitsuba.tools.stability import cases as sc, image_cases, robustness as rb
+from layerbvh_mitsuba.tools.stability import cases as sc, image_cases, robustness as rb, scale_cases
 
 
 def _cell(x) -> str:
@@ -31,6 +31,26 @@ def _cell(x) -> str:
 def _wrong(r) -> str:
     w = r.figures.get("wrong")
     return "–" if not w else f"{w['ours']:,} / {w['default']:,} / {w['robust']:,}"
+
+
+def _scale_section(results) -> list[str]:
+    """The extreme-scale referee's table (scale_cases.extreme_scales), where it ran."""
+    r = next((r for r in results if r.case == "extreme_scales"), None)
+    if r is None:
+        return []
+    lo, hi = r.figures["claimed"]
+    lines = ["## Extreme scales: who matches the referee", "",
+             "The scene `scenes/stability/scaled.xml` (a cube on a floor, a directional light and a constant sky) does "
+             "not change its image with its scale, so its render at scale 1 is the referee for every other scale "
+             f"(`plugin/tools/stability/scale_cases.py`; {r.notes}). Image mean against the referee's, and the share of "
+             f"pixels within the same-seed tolerance of it; *matches*: which side is within {scale_cases.TOLERANCE:.0%}. "
+             f"Ours is claimed from {lo:g} to {hi:g}; outside, Mitsuba's own surface code, which both sides run, "
+             "fails (the reasons: `scale_cases.CLAIMED`).", "",
+             "| scale | stock: mean | within | ours: mean | within | matches |", "|---:|---:|---:|---:|---:|---|"]
+    for row in r.figures["rows"]:
+        lines.append(f"| {row['scale']:g} | {row['stock_rel']:+.2%} | {row['stock_within']:.1%} | {row['ours_rel']:+.2%} "
+                     f"| {row['ours_within']:.1%} | {row['matches']} |")
+    return lines + [""]
 
 
 def markdown(results, command: str, scale: float, seconds: float, robust=()) -> str:
@@ -69,6 +89,7 @@ def markdown(results, command: str, scale: float, seconds: float, robust=()) -> 
     lines += ["", "## The cases", ""]
     for r in results:
         lines += [f"**`{r.case}`**: {sc.CASES[r.case].what}.  ", f"Rule: {r.criterion}.  ", f"Notes: {r.notes}.", ""]
+    lines += _scale_section(results)
     if robust:
         failed = [r.case for r in robust if not r.passed]
         lines += ["## The command line under abuse", "",
