@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import drjit as dr
 
-from .layout import (INST_FLOATS, INST_ROOT, INST_TO_OBJECT, NODE_BOX_HI, NODE_BOX_LO, NODE_FLOATS, NODE_LINK, TRI_FACE,
+from .layout import (FAR_COORD, INST_FLOATS, INST_ROOT, INST_TO_OBJECT, NODE_BOX_HI, NODE_BOX_LO, NODE_FLOATS, NODE_LINK, TRI_FACE,
                      TRI_FLOATS, TRI_NORMAL, TRI_VERTEX, NodeFormat)
 
 # Ize 2013: scaling a box's far distance by 1 + 2*gamma(3) makes the float slab test conservative.
@@ -16,6 +16,13 @@ FAR_SCALE = 1.0 + 2.0 * _GAMMA3
 MIN_RCP_INPUT = 1e-18
 # Bound on a float edge function's error in units of m(P) m(Q) (see hit_triangle): 16 ulps.
 EDGE_ERR = 16 * 2.0 ** -24
+# An edge function multiplies two vertex coordinates taken relative to the ray origin: past ~2^63
+# the product overflows float32 (FLT_MAX ~ 2^128) and the triangle is lost (a scene scaled by 1e18
+# has its floor's corners at 1e19: issue 56). Where a triangle's relative coordinates pass
+# layout.FAR_COORD they are taken in units of 1 / FAR_UNIT, a power of two: every product keeps its
+# bits, so the test decides as it would in a float with more exponent. Only a layout holding a
+# coordinate beyond FAR_COORD compiles the check (DeviceLayout.far); the others test as before.
+FAR_UNIT = 2.0 ** -80
 
 
 @dataclass
@@ -139,13 +146,27 @@ def f64_from_halves(m, lo, hi):
     return dr.reinterpret_array(m.Float64, bits)
 
 
+def far_unit(m, relative):
+    """Per lane, the unit (1 or FAR_UNIT) in which a triangle's origin-relative coordinates
+    (`relative`: A, B, C, three Floats each) are tested (see FAR_COORD)."""
+    big = dr.abs(relative[0][0])
+    for point in relative:
+        for c in point:
+            big = dr.maximum(big, dr.abs(c))
+    return dr.select(big > FAR_COORD, m.Float(FAR_UNIT), m.Float(1.0))
+
+
 @dr.syntax
-def hit_triangle(m, tris, tri, ray: Ray, active):
+def hit_triangle(m, tris, tri, ray: Ray, active, far: bool = False):
     """Watertight test against triangle `tri` (leaf order): (hit, t, u, v, original face id).
 
-    Hits are 0 < t; p = (1-u-v)*v0 + u*v1 + v*v2. Degenerate triangles (det = 0) never hit."""
+    Hits are 0 < t; p = (1-u-v)*v0 + u*v1 + v*v2. Degenerate triangles (det = 0) never hit.
+    `far`: the layout holds coordinates beyond FAR_COORD (DeviceLayout.far)."""
     rec = dr.gather(m.ArrayXf, tris, tri, active, shape=(TRI_FLOATS, dr.width(tri)))
     A, B, C = ([rec[at + c] - ray.o[c] for c in range(3)] for at in TRI_VERTEX)
+    unit = far_unit(m, (A, B, C)) if far else None
+    if far:
+        A, B, C = ([c * unit for c in P] for P in (A, B, C))
     Az, Bz, Cz = pick(A, ray.kz), pick(B, ray.kz), pick(C, ray.kz)
     Ax, Ay = pick(A, ray.kx) - ray.sx * Az, pick(A, ray.ky) - ray.sy * Az
     Bx, By = pick(B, ray.kx) - ray.sx * Bz, pick(B, ray.ky) - ray.sy * Bz
@@ -172,8 +193,12 @@ def hit_triangle(m, tris, tri, ray: Ray, active):
         dz64 = pick(d64, ray.kz)
         sx64, sy64 = pick(d64, ray.kx) / dz64, pick(d64, ray.ky) / dz64
 
+        unit64 = F64(unit) if far else None
+
         def sheared(base):
             p = [F64(rec[base + c]) - o64[c] for c in range(3)]
+            if far:
+                p = [c * unit64 for c in p]
             pz = pick(p, ray.kz)
             return pick(p, ray.kx) - sx64 * pz, pick(p, ray.ky) - sy64 * pz
         (ax, ay), (bx, by), (cx, cy) = (sheared(at) for at in TRI_VERTEX)

@@ -106,6 +106,9 @@ TRI_VERTEX = (0, 3, 6)  # 3 floats each: v0, v1, v2 (x, y, z)
 TRI_FACE = 9            # uint32: the caller's face index
 TRI_NORMAL = 10         # 3 float64 in slots 10..15 (low word first): (v1 - v0) x (v2 - v0)
 TRI_FLOATS = 16         # total: 64 bytes, one cache line
+# A layout with a vertex coordinate beyond this tests triangles in far units (geometry.hit_triangle,
+# DeviceLayout.far): 2^50, far under 2^63, where an edge function's product overflows float32.
+FAR_COORD = 2.0 ** 50
 
 # Leaf record, uint32 slots.
 LEAF_FIRST = 0          # first triangle (leaf order)
@@ -210,7 +213,13 @@ class LayerLayout:
             treelet_first=from_numpy(m.UInt32, self.treelet_first),
             node_treelet=from_numpy(m.UInt32, self.node_treelet),
             depth=self.depth, height=self.height, treelet_count=self.treelet_count, branching=self.branching,
-            instances=None if self.instances is None else from_numpy(m.Float, self.instances))
+            instances=None if self.instances is None else from_numpy(m.Float, self.instances), far=self.far)
+
+    @property
+    def far(self) -> bool:
+        """Whether a vertex coordinate lies beyond FAR_COORD (geometry.hit_triangle's far units)."""
+        corners = self.tris.reshape(-1, TRI_FLOATS)[:, TRI_VERTEX[0]:TRI_VERTEX[2] + 3]
+        return bool(corners.size) and bool(np.abs(corners).max() > FAR_COORD)
 
     def array_bytes(self) -> dict:
         """Bytes of each array the traversal keeps on the device (see DeviceLayout)."""
@@ -232,6 +241,7 @@ class DeviceLayout:
     treelet_count: int
     branching: int = 2
     instances: object = None  # instance records (INST_*), None for a layout without instances
+    far: bool = False         # a vertex coordinate lies beyond FAR_COORD (geometry.hit_triangle's units)
 
 
 def check_layout(lay: LayerLayout, n_faces: int, instance_ids: np.ndarray | None = None) -> None:

@@ -27,9 +27,9 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .geometry import EDGE_ERR, FAR_SCALE, MIN_RCP_INPUT
+from .geometry import EDGE_ERR, FAR_SCALE, FAR_UNIT, MIN_RCP_INPUT
 from .layout import (BRANCHINGS, EXIT_BIT, LEAF_BIT, LEAF_COUNT_SHIFT, LEAF_FIRST_MASK, NODE_BOX_HI, NODE_BOX_LO,
-                     NODE_LINK, PAYLOAD_MASK, POP, TRI_FACE, TRI_FLOATS, TRI_NORMAL, TRI_VERTEX, LayerLayout, node_format)
+                     FAR_COORD, NODE_LINK, PAYLOAD_MASK, POP, TRI_FACE, TRI_FLOATS, TRI_NORMAL, TRI_VERTEX, LayerLayout, node_format)
 from .memmodel import cache_access, coalesce
 
 # -- constants as plain ints/float32 (numba folds them; numpy uint32 would promote to float) ------
@@ -37,6 +37,7 @@ _LEAF, _EXIT, _PAYLOAD = int(LEAF_BIT), int(EXIT_BIT), int(PAYLOAD_MASK)
 _FIRST, _SHIFT, _POP = int(LEAF_FIRST_MASK), LEAF_COUNT_SHIFT, int(POP)
 _FAR = np.float32(FAR_SCALE)            # Dr.Jit multiplies a Float by a Python float in float32
 _EDGE = np.float32(EDGE_ERR)
+_FAR_COORD, _FAR_UNIT = np.float32(FAR_COORD), np.float32(FAR_UNIT)
 _MIN_RCP = np.float32(MIN_RCP_INPUT)
 _LO0, _LO1, _HI0, _HI1 = NODE_BOX_LO[0], NODE_BOX_LO[1], NODE_BOX_HI[0], NODE_BOX_HI[1]
 _LK0, _LK1 = NODE_LINK
@@ -124,6 +125,12 @@ def _hit_triangle(tris_f, tris_u, tris_d, tri, fst, ist, s):
     a0, a1, a2 = tris_f[tri, _V0] - o0, tris_f[tri, _V0 + 1] - o1, tris_f[tri, _V0 + 2] - o2
     b0, b1, b2 = tris_f[tri, _V1] - o0, tris_f[tri, _V1 + 1] - o1, tris_f[tri, _V1 + 2] - o2
     c0, c1, c2 = tris_f[tri, _V2] - o0, tris_f[tri, _V2 + 1] - o1, tris_f[tri, _V2 + 2] - o2
+    # geometry.far_unit: taken here for every triangle (a layout without far coordinates never
+    # passes FAR_COORD, where the kernel leaves the check out, so both decide alike)
+    big = max(abs(a0), abs(a1), abs(a2), abs(b0), abs(b1), abs(b2), abs(c0), abs(c1), abs(c2))
+    unit = _FAR_UNIT if big > _FAR_COORD else np.float32(1.0)
+    a0, a1, a2, b0, b1, b2 = a0 * unit, a1 * unit, a2 * unit, b0 * unit, b1 * unit, b2 * unit
+    c0, c1, c2 = c0 * unit, c1 * unit, c2 * unit
     az_, bz_, cz_ = _pick(a0, a1, a2, kz), _pick(b0, b1, b2, kz), _pick(c0, c1, c2, kz)
     ax_, ay_ = _pick(a0, a1, a2, kx) - sx * az_, _pick(a0, a1, a2, ky) - sy * az_
     bx_, by_ = _pick(b0, b1, b2, kx) - sx * bz_, _pick(b0, b1, b2, ky) - sy * bz_
@@ -149,6 +156,7 @@ def _hit_triangle(tris_f, tris_u, tris_d, tri, fst, ist, s):
             e0 = np.float64(tris_f[tri, base]) - p0
             e1 = np.float64(tris_f[tri, base + 1]) - p1
             e2 = np.float64(tris_f[tri, base + 2]) - p2
+            e0, e1, e2 = e0 * np.float64(unit), e1 * np.float64(unit), e2 * np.float64(unit)
             ez = _pick(e0, e1, e2, kz)
             q[2 * j] = _pick(e0, e1, e2, kx) - sx64 * ez
             q[2 * j + 1] = _pick(e0, e1, e2, ky) - sy64 * ez

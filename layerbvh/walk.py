@@ -274,7 +274,7 @@ def _test_triangle(m, lay: DeviceLayout, ray, tri, active, t_best, u_best, v_bes
     """One triangle of the current leaf against the closest hit so far: (closer, and the closest
     hit's t, u, v, prim and instance). Ties in t go by (instance, primitive). In a wavefront step
     (`results` given) a closer hit is written by slot at once (see walk's docstring)."""
-    hit, t, u, v, prim = hit_triangle(m, lay.tris, tri, ray, active)
+    hit, t, u, v, prim = hit_triangle(m, lay.tris, tri, ray, active, lay.far)
     closer = hit & ((t < t_best) | ((t == t_best) & _first_by_id(prim, prim_best, in_inst, hit_inst, instanced)))
     if instanced:
         hit_inst = dr.select(closer, in_inst, hit_inst)

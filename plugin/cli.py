@@ -193,6 +193,8 @@ def cmd_compare(mi, args) -> int:
     print(f"verdict: {c.verdict.label} ({c.verdict.summary()})")
     if c.gradient is not None:
         print(f"gradient verdict: {c.gradient.label} ({c.gradient.summary()})")
+    if c.referee is not None:
+        print(c.referee if isinstance(c.referee, str) else c.referee.line())
     print(str(Path(args.out).resolve() / "index.html"))
     return 0
 

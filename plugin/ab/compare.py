@@ -11,9 +11,10 @@ import mitsuba
 import numpy as np
 
 import layerbvh
-from layerbvh_mitsuba.ab import hypotheses, metrics
+from layerbvh_mitsuba.ab import hypotheses, metrics, referee
 from layerbvh_mitsuba.ab.gradient import GradientComparison, check_gradient, compare_gradients
 from layerbvh_mitsuba.ab.page import split_share
+from layerbvh_mitsuba.ab.referee import Referee
 from layerbvh_mitsuba.ab.render import TimedRender, load_integrator, load_scene, scene_spp, timed_render
 from layerbvh_mitsuba.ab.memory import check_memory
 from layerbvh_mitsuba.ab.scene_integrator import PathSettings, path_settings
@@ -103,6 +104,7 @@ class Comparison:
     counted_time: SideTime | None = None
     heatmaps: dict = field(default_factory=dict, repr=False)
     gradient: GradientComparison | None = None          # with settings.grad
+    referee: Referee | str | None = None  # a scene far from unit size: the unit-scale referee, or why not (referee.py)
     scene: object = field(default=None, repr=False)       # the loaded scene (stock's copy)
     integrator: object = field(default=None, repr=False)  # ours, as it rendered (its tracer holds the BVH)
 
@@ -159,6 +161,10 @@ class Comparison:
             info["split"] = self.split()
         if self.gradient is not None:
             info["gradient"] = self.gradient.as_dict()
+        if isinstance(self.referee, Referee):
+            info["referee"] = {**self.referee.as_dict(), "line": self.referee.line()}
+        elif self.referee is not None:
+            info["referee"] = {"refused": self.referee}
         return info
 
     def summary(self) -> str:
@@ -313,8 +319,18 @@ def compare(mi, s: CompareSettings, scene=None) -> Comparison:
         gradient = _stage(OURS, "render", lambda: compare_gradients(
             mi, path.estimator, scene_path, scene, ours_scene, (w, h), spp, s.seed, path.stock_inner(), ours_all,
             s.grad, dict(s.params), s.ours_modify, s.statistical_step))
+    ref = None
+    if referee.needed(scene) and path.wrapper is None:  # (a wrapper's channels are not radiance)
+        try:
+            ref = _stage(STOCK, "render", lambda: referee.judge(
+                mi, scene_path, res, dict(s.params), scene, load_integrator(mi, path.integrator(path.stock_inner())),
+                spp, s.seed, stock_img, ours_img))
+        except ComparisonFailed as e:
+            if not isinstance(e.error, referee.RefereeRefused):
+                raise
+            ref = f"no unit-scale referee: {e.error}"
     return Comparison(settings=s, spp=spp, resolution=(w, h), variant=mi.variant(), path=path, ours_props=ours_all,
                       stock=stock_img, ours=ours_img, nonfinite=(bad_stock, bad_ours), stock_time=stock_time,
                       ours_time=ours_time, stats=stats, verdict=verdict,
                       control_time=control_time, counted=counted, counted_time=counted_time, heatmaps=heatmaps,
-                      gradient=gradient, scene=scene, integrator=ours)
+                      gradient=gradient, scene=scene, integrator=ours, referee=ref)

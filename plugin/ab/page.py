@@ -301,6 +301,17 @@ def _gradient_html(g: dict | None, figures: list, width: int) -> str:
             f"<table><tr><th>component</th><th>stock</th><th>ours</th></tr>{rows}</table>\n")
 
 
+def _referee_html(r: dict | None) -> str:
+    """The unit-scale referee of a scene far from unit size (referee.Referee.as_dict), or why not."""
+    if not r:
+        return ""
+    if "refused" in r:
+        return f'<p class="warn" id="referee">{html.escape(str(r["refused"]))}</p>\n'
+    return (f'<p class="warn" id="referee" data-matches="{html.escape(str(r.get("matches")))}">This scene is far from '
+            f'unit size (extent {r.get("extent", 0):.3g}), where float32 and Mitsuba\'s epsilons lose precision: '
+            f'{html.escape(str(r.get("line", "")))}.</p>\n')
+
+
 def render_page(rep: dict, stock: np.ndarray, ours: np.ndarray, maps: dict, heatmaps: list,
                 gradient: list | None = None) -> str:
     """The page for a report dict (as in report.json), its two images (linear RGB), the error
@@ -368,7 +379,7 @@ def render_page(rep: dict, stock: np.ndarray, ours: np.ndarray, maps: dict, heat
         '<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n',
         f"<title>{esc(title)}: stock vs layerbvh</title>\n<style>{STYLE}</style>\n</head>\n<body>\n",
         f"<h1>{esc(title)}: stock Mitsuba vs layerbvh</h1>\n<div class=\"small\">{esc(run)}</div>\n",
-        verdict, as_path,
+        verdict, _referee_html(rep.get("referee")), as_path,
         "<h2>Stock and ours</h2>\n", controls, f'<div class="viewer">{canvas}{side}</div>\n',
         "<h2>Where they differ</h2>\n", f'<div class="maps">{map_figs}</div>\n',
         _gradient_html(rep.get("gradient"), gradient or [], w * max(1, scale // 2)),

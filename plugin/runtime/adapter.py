@@ -12,6 +12,7 @@ import numpy as np
 
 import layerbvh
 from layerbvh import from_numpy
+from layerbvh_mitsuba.runtime import extreme_scale
 from layerbvh_mitsuba.runtime.queries import RayQueries
 from layerbvh_mitsuba.runtime.scene_geometry import (AnalyticTest, ELLIPSOIDS, SceneGeometry, mesh_digest,
     collect_geometry)
@@ -80,6 +81,8 @@ class SceneTracer(RayQueries):
             self.bvh = layerbvh.build(g.vertices, g.faces, **params)
             self.tri_shape = from_numpy(mi.UInt32, g.tri_shape)
             self.tri_local = from_numpy(mi.UInt32, g.tri_local)
+        self.normals = extreme_scale.FaceNormals.needed(scene, g.groups[0])
+        self.far = extreme_scale.far_scene(scene)
         # numba's one-time kernel load is not build time (bvh.stats.kernel_load_s reports it).
         self.build_s = time.perf_counter() - t0 - self.bvh.stats.kernel_load_s
         self.reset_counters()
@@ -149,6 +152,15 @@ class SceneTracer(RayQueries):
         return self._or_analytic(ray, active, mi.Bool(occ.occluded))
 
     # -- inside the caller's kernel: per_ray, no host synchronisation --------------------------------
+    def surface(self, pi, ray, flags, active=True):
+        """Mitsuba's surface interaction, its normals repaired where float32 lost them (extreme_scale)."""
+        si = pi.compute_surface_interaction(ray, flags, active)
+        return si if self.normals is None else self.normals.repair(si, pi, ray, active)
+
+    def shadow_ray(self, ref, p):
+        """Mitsuba's ray from `ref` to `p`, rebuilt where float32 lost it (extreme_scale)."""
+        return extreme_scale.spawn_ray_to(ref, p) if self.far else ref.spawn_ray_to(p)
+
     def intersect_inline(self, ray: mi.Ray3f, active) -> mi.PreliminaryIntersection3f:
         """As `intersect`, traced inline (usable in a symbolic loop)."""
         active = mi.Bool(active)

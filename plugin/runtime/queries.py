@@ -21,6 +21,17 @@ class RayQueries(ABC):
     def occluded(self, ray, active):
         """Whether anything lies on each active ray in (0, ray.maxt)."""
 
+    def surface(self, pi, ray, flags, active=True):
+        """The surface interaction of a closest hit: stock's `pi.compute_surface_interaction`,
+        which every estimator calls through here so that our tracer can repair the normals that
+        Mitsuba loses to float32 range (runtime/normals.py)."""
+        return pi.compute_surface_interaction(ray, flags, active)
+
+    def shadow_ray(self, ref, p):
+        """The ray from interaction `ref` to point `p` (stock's `ref.spawn_ray_to(p)`), through here
+        for the same reason as `surface`."""
+        return ref.spawn_ray_to(p)
+
 
 class InlineQueries(RayQueries):
     """Our per_ray traversal inside the caller's kernel (the megakernel path)."""
@@ -35,6 +46,12 @@ class InlineQueries(RayQueries):
 
     def occluded(self, ray, active):
         return self.tracer.occluded_inline(ray, active)
+
+    def surface(self, pi, ray, flags, active=True):
+        return self.tracer.surface(pi, ray, flags, active)
+
+    def shadow_ray(self, ref, p):
+        return self.tracer.shadow_ray(ref, p)
 
 
 class EmbreeQueries(RayQueries):

@@ -109,7 +109,7 @@ def visible_emitter_sample(scene, queries: RayQueries, si, sample, active, test:
     emitters: every pdf is 0). Returns (ds, weight)."""
     ds, weight = scene.sample_emitter_direction(si, sample, False, active)
     if test:
-        occluded = queries.occluded(si.spawn_ray_to(ds.p), mi.Bool(active) & (ds.pdf != 0))
+        occluded = queries.occluded(queries.shadow_ray(si, ds.p), mi.Bool(active) & (ds.pdf != 0))
         weight = dr.select(occluded, 0, weight)
         ds.pdf = dr.select(occluded, 0, ds.pdf)
     return ds, weight
@@ -136,7 +136,7 @@ def skip_area_emitters(queries: RayQueries, ray, pi, active, megakernel: bool):
 
     def step(ray, pi):
         hit_em = hits_emitter(ray, pi)
-        si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, hit_em)
+        si = queries.surface(pi, ray, mi.RayFlags.Minimal, hit_em)
         ray = mi.Ray3f(dr.select(hit_em, si.spawn_ray(ray.d).o, ray.o), ray.d)
         return ray, dr.select(hit_em, queries.intersect(ray, hit_em, hint="camera"), pi)
     _, pi = loop((ray, pi), cond=hits_emitter, body=step, symbolic=megakernel, label="layerbvh hide_emitters")

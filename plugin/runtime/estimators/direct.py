@@ -74,7 +74,7 @@ class DirectEstimator:
         pi = queries.intersect(ray, active, hint="camera")
         if self.hide_emitters:  # as stock: a camera ray that hits an area emitter continues behind it
             pi = skip_area_emitters(queries, ray, pi, active, tr.megakernel)
-        si = pi.compute_surface_interaction(ray, mi.RayFlags.All, active)
+        si = queries.surface(pi, ray, mi.RayFlags.All, active)
         valid_ray = active & si.is_valid()
         result = mi.Spectrum(0)
         if not self.hide_emitters:
@@ -106,7 +106,7 @@ class DirectEstimator:
                 return sampler, i + 1, result  # no emitter: nothing to add (the sample is drawn all the same)
             ds, emitter_val = scene.sample_emitter_direction(si, em_sample, False, active_e)
             active_e &= ds.pdf != 0.0
-            active_e &= ~queries.occluded(si.spawn_ray_to(ds.p), active_e)
+            active_e &= ~queries.occluded(queries.shadow_ray(si, ds.p), active_e)
             wo = si.to_local(ds.d)
             bsdf_val, bsdf_pdf = bsdf.eval_pdf(ctx, si, wo, active_e)
             bsdf_val = si.to_world_mueller(bsdf_val, -wo, si.wi)
@@ -126,8 +126,8 @@ class DirectEstimator:
             active_b = active & dr.any(mi.unpolarized_spectrum(bsdf_val) != 0)
             bray = si.spawn_ray(si.to_world(bs.wo))
             kind = bounce_kind(mi, dr, bs.sampled_type, 0) if tr.recording else None
-            si_b = queries.intersect(bray, active_b, hint="bounce", kind=kind).compute_surface_interaction(
-                bray, mi.RayFlags.All, active_b)
+            si_b = queries.surface(queries.intersect(bray, active_b, hint="bounce", kind=kind), bray, mi.RayFlags.All,
+                                   active_b)
             emitter = si_b.emitter(scene, active_b)
             active_b &= emitter != None  # noqa: E711  (a Dr.Jit pointer array against null)
             emitter_val = emitter.eval(si_b, active_b)

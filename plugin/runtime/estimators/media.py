@@ -151,7 +151,7 @@ class MediaWalk:
     @staticmethod
     def hit(queries, ray: mi.Ray3f, active, hint: str) -> mi.SurfaceInteraction3f:
         """Stock's `scene.ray_intersect`: the closest hit (our traversal), fully interpolated."""
-        return queries.intersect(ray, active, hint=hint).compute_surface_interaction(ray, mi.RayFlags.All, active)
+        return queries.surface(queries.intersect(ray, active, hint=hint), ray, mi.RayFlags.All, active)
 
     def free_flight(self, sampler, queries, ray: mi.Ray3f, si, medium, needs_intersection, active_medium, channel,
                     hint: str, remaining=None):
@@ -188,7 +188,7 @@ class MediaWalk:
             skip = si.is_valid() & (si.shape.emitter() != None) & (depth == 0) & intersect  # noqa: E711
             behind = si.spawn_ray(ray.d)
             pi = skip_area_emitters(queries, behind, queries.intersect(behind, skip, hint=hint), skip, megakernel)
-            si = dr.select(skip, pi.compute_surface_interaction(behind, mi.RayFlags.All, skip), si)
+            si = dr.select(skip, queries.surface(pi, behind, mi.RayFlags.All, skip), si)
         return si
 
     # -- one loop iteration -----------------------------------------------------------------------
@@ -317,7 +317,7 @@ class MediaWalk:
         ds, emitter_weight = scene.sample_emitter_direction(ref, sampler.next_2d(active), False, active)
         active = active & (ds.pdf != 0)
         emitter_val, shadow_w = W.emitter_start(w, ds, emitter_weight, channel, active)
-        ray = ref.spawn_ray_to(ds.p)
+        ray = tr.queries.shadow_ray(ref, ds.p)
         if not tr.use.transmittance.on:
             # No medium and no null surface: light is blocked by the first hit (stock's loop then
             # ends at its first surface, whose null transmission is zero).

@@ -96,7 +96,7 @@ class PathEstimator:
         use, queries = tr.use, tr.queries
         bsdf_ctx = mi.BSDFContext()
         active, depth, beta, eta = p.active, p.depth, p.beta, p.eta
-        si = p.pi.compute_surface_interaction(p.ray, mi.RayFlags.All, active)
+        si = queries.surface(p.pi, p.ray, mi.RayFlags.All, active)
         bsdf = si.bsdf(p.ray)
         active_next = mi.Bool(active)
         if self.hide_emitters:
@@ -122,7 +122,7 @@ class PathEstimator:
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
             ds, em_weight = scene.sample_emitter_direction(si, em_sample, False, active_em)
             active_em &= ds.pdf != 0.0
-            active_em &= ~queries.occluded(si.spawn_ray_to(ds.p), active_em)
+            active_em &= ~queries.occluded(queries.shadow_ray(si, ds.p), active_em)
             wo = si.to_local(ds.d)
             bsdf_value_em, bsdf_pdf_em = bsdf.eval_pdf(bsdf_ctx, si, wo, active_em)
             bsdf_value_em = si.to_world_mueller(bsdf_value_em, -wo, si.wi)  # (polarized: into world frames)

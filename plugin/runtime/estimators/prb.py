@@ -104,9 +104,9 @@ class PRBEstimator:
         active_next = mi.Bool(s.active)
         si_prev = s.si_prev
         with dr.resume_grad(when=replay):
-            si = s.pi.compute_surface_interaction(s.ray, ray_flags=mi.RayFlags.All)
+            si = tr.queries.surface(s.pi, s.ray, mi.RayFlags.All)
             if replay:  # wi follows the previous vertex where it moves (not this one's motion)
-                moved = dr.replace_grad(si_prev, s.pi_prev.compute_surface_interaction(s.ray_prev, mi.RayFlags.Minimal))
+                moved = dr.replace_grad(si_prev, tr.queries.surface(s.pi_prev, s.ray_prev, mi.RayFlags.Minimal))
                 here = dr.detach(si)
                 later = s.depth >= 1
                 si.wi = dr.select(later, dr.replace_grad(si.wi, here.to_local(dr.normalize(moved.p - here.p))), si.wi)
@@ -151,7 +151,7 @@ class PRBEstimator:
         pi_next = tr.queries.intersect(ray_next, active_next, hint="bounce", kind=kind)
         dL = s.dL
         if replay:
-            Lr_ind = reattached_reflection(L, si, bsdf, ray_next, pi_next, active_next, self.NEXT_FLAGS)
+            Lr_ind = reattached_reflection(tr.queries, L, si, bsdf, ray_next, pi_next, active_next, self.NEXT_FLAGS)
             with dr.resume_grad():
                 dL = propagate(mode, dL, Le + Lr_dir + Lr_ind, s.active, tr.megakernel)
 
@@ -173,11 +173,11 @@ class PRBEstimator:
         is_infinite = mi.has_flag(flags, mi.EmitterFlags.Infinite)
         textured_em = active_em & is_surface & mi.has_flag(flags, mi.EmitterFlags.SpatiallyVarying)
         if textured:
-            ray_em = si.spawn_ray_to(ds.p)
+            ray_em = tr.queries.shadow_ray(si, ds.p)
             ray_em.o = dr.fma(ray_em.d, ray_em.maxt, ray_em.o)  # (visibility is already known)
             ray_em.maxt = dr.largest(ray_em.maxt)
             pi_em = tr.queries.intersect(dr.detach(ray_em), textured_em, hint="bounce")
-            si_em = pi_em.compute_surface_interaction(ray_em, mi.RayFlags.All, textured_em)
+            si_em = tr.queries.surface(pi_em, ray_em, mi.RayFlags.All, textured_em)
         else:  # (no emitter is textured: the mask is empty)
             si_em = dr.zeros(mi.SurfaceInteraction3f, dr.width(active_em))
         ds_diff = dr.select(textured_em, mi.DirectionSample3f(scene, si_em, si), dr.zeros(mi.DirectionSample3f))

@@ -62,9 +62,9 @@ class BasicPRBEstimator:
         replay = differential(mode)
         active_next = mi.Bool(s.active)
         with dr.resume_grad(when=replay):
-            si = s.pi.compute_surface_interaction(s.ray, ray_flags=mi.RayFlags.All)
+            si = tr.queries.surface(s.pi, s.ray, mi.RayFlags.All)
             if replay:  # wi follows the previous vertex where it moves (not this one's motion)
-                prev = s.pi_prev.compute_surface_interaction(s.ray_prev, ray_flags=mi.RayFlags.All)
+                prev = tr.queries.surface(s.pi_prev, s.ray_prev, mi.RayFlags.All)
                 here = dr.detach(si)
                 si.wi = dr.select(s.depth >= 1, dr.replace_grad(si.wi, here.to_local(dr.normalize(prev.p - here.p))),
                                   si.wi)
@@ -84,7 +84,7 @@ class BasicPRBEstimator:
         pi_next = tr.queries.intersect(ray_next, active_next, hint="bounce", kind=kind)
         dL = s.dL
         if replay:
-            Lr = reattached_reflection(L, si, bsdf, ray_next, pi_next, active_next, self.NEXT_FLAGS)
+            Lr = reattached_reflection(tr.queries, L, si, bsdf, ray_next, pi_next, active_next, self.NEXT_FLAGS)
             with dr.resume_grad():
                 dL = propagate(mode, dL, Le + Lr, s.active, tr.megakernel)
 

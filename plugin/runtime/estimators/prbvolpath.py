@@ -200,7 +200,7 @@ class PRBVolPathEstimator:
                 behind = si.spawn_ray(ray.d)
                 pi = skip_area_emitters(tr.queries, behind, tr.queries.intersect(behind, skip, hint=hint), skip,
                                         tr.megakernel)
-                si = dr.select(skip, pi.compute_surface_interaction(ray, mi.RayFlags.All, skip), si)
+                si = dr.select(skip, tr.queries.surface(pi, ray, mi.RayFlags.All, skip), si)
             count_direct = (active_surface & (depth == 0)) | specular_chain
             emitter = si.emitter(scene)
             active_e = active_surface & (emitter != None) & ~((depth == 0) & self.hide_emitters)  # noqa: E711
@@ -300,7 +300,7 @@ class PRBVolPathEstimator:
         active = active & ~invalid
         medium = dr.select(active, medium, dr.zeros(mi.MediumPtr))
         medium = dr.select(active_surface & si.is_medium_transition(), si.target_medium(ds.d), medium)
-        ray = ref.spawn_ray_to(ds.p)
+        ray = tr.queries.shadow_ray(ref, ds.p)
         max_dist = mi.Float(ray.maxt)
         n = dr.width(active)
         state = NEEState(active=active, ray=ray, total_dist=dr.zeros(mi.Float, n),

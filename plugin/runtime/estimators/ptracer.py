@@ -61,10 +61,10 @@ class ParticleTracerEstimator:
         and the ray leaving it (what reaches every kind of batch a light path traces)."""
         ray, _ = self._light_ray(scene, sensor, sampler)
         pi = tr.queries.intersect(ray, dr.full(mi.Bool, True, dr.width(ray.o)), hint="light")
-        si = pi.compute_surface_interaction(ray, mi.RayFlags.All)
+        si = tr.queries.surface(pi, ray, mi.RayFlags.All)
         hit = pi.is_valid()
         sensor_ds, _ = sensor.sample_direction(si, sampler.next_2d(), hit)
-        tr.queries.occluded(si.spawn_ray_to(sensor_ds.p), hit & (sensor_ds.pdf > 0))
+        tr.queries.occluded(tr.queries.shadow_ray(si, sensor_ds.p), hit & (sensor_ds.pdf > 0))
         s2 = sampler.next_2d(hit)
         bs, _ = si.bsdf(ray).sample(mi.BSDFContext(_IMPORTANCE), si, sampler.next_1d(hit), s2, hit)
         tr.queries.intersect(si.spawn_ray(si.to_world(bs.wo)), hit, hint="light")
@@ -128,7 +128,7 @@ class ParticleTracerEstimator:
 
         def body(active, depth, ray, throughput, pi, eta, sampler):
             tr.iteration()
-            si = pi.compute_surface_interaction(ray, mi.RayFlags.All)
+            si = tr.queries.surface(pi, ray, mi.RayFlags.All)
             bsdf = si.bsdf(ray)
             sensor_ds, sensor_weight = sensor.sample_direction(si, sampler.next_2d(), active)
             self._connect(scene, si, sensor_ds, bsdf, throughput * sensor_weight, block, sample_scale, active, tr)
@@ -160,7 +160,7 @@ class ParticleTracerEstimator:
         (ours): an emitter's point (`bsdf` None: foreshortening only, alpha 0) or a path vertex
         (its BSDF toward the sensor, adjoint-corrected, alpha 1)."""
         active = active & (sensor_ds.pdf > 0) & dr.any(mi.unpolarized_spectrum(weight) != 0)
-        sensor_ray = si.spawn_ray_to(sensor_ds.p)
+        sensor_ray = tr.queries.shadow_ray(si, sensor_ds.p)
         active &= ~tr.queries.occluded(sensor_ray, active)
         local_d = si.to_local(sensor_ray.d)
         cos_d = mi.Frame3f.cos_theta(local_d)

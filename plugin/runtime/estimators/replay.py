@@ -54,13 +54,14 @@ def camera_hits(tr: Tracing, ray, active, hide_emitters: bool):
     return skip_area_emitters(tr.queries, ray, pi, active, tr.megakernel) if hide_emitters else pi
 
 
-def reattached_reflection(L, si, bsdf, ray_next, pi_next, active_next, flags):
+def reattached_reflection(queries, L, si, bsdf, ray_next, pi_next, active_next, flags):
     """The radiance reflected at vertex `si` with its derivatives attached: `L`, the detached radiance still to come along the path, scaled by the
     relative derivative of BSDF x cosine in the sampled direction, and by that of the solid-angle
     to area Jacobian where the next vertex `pi_next` (found by `ray_next`) moves. That next vertex
     is computed detached (only the current one's motion counts), the rest with derivatives.
-    `flags`: what the next vertex's surface interaction computes (prb: Minimal; prb_basic: All)."""
-    si_next = pi_next.compute_surface_interaction(ray_next, ray_flags=flags, active=active_next)
+    `flags`: what the next vertex's surface interaction computes (prb: Minimal; prb_basic: All),
+    through `queries` (RayQueries.surface)."""
+    si_next = queries.surface(pi_next, ray_next, flags, active_next)
     with dr.resume_grad():
         J = area_jacobian(si.p, si_next.p, si_next.n, active_next & si_next.is_valid())
         # The direction re-derived from the two vertices, so a moving vertex turns the cosine.
