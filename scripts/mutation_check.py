@@ -377,7 +377,8 @@ MUTATIONS = (
              "plugin/runtime/estimators/volpathmis.py",
              "        return Ratios(w.p_over_f, self.W.select(scattered, w.p_over_f, w.p_over_f_nee), w.last_event_was_null)",
              "        return w",
-             ("tests/runtime/test_media_reference.py::test_volpathmis_passes_mitsubas_reference_test[test_homo_spectral_sigmat]",)),
+             ("tests/runtime/test_volpath.py::test_mitsuba_volpathmis_scenes_match_stock_at_the_same_seed[test_homo_spectral_sigmat]",
+              "tests/runtime/test_media_reference.py::test_volpathmis_passes_mitsubas_reference_test[test_hetero_spectral_sigmat]")),
     Mutation("volpath_albedo_lost", "volpath's real collision in a medium of spectral extinction weighs the "
              "throughput by sigma_s alone (its strategy's real_collision drops the real-collision probability)",
              "plugin/runtime/estimators/volpath.py",

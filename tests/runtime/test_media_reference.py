@@ -68,14 +68,32 @@ def _refs(name: str) -> tuple[np.ndarray, np.ndarray]:
     return _xyz(MEDIA / "refs" / f"{name}_ref_rgb.exr"), _xyz(MEDIA / "refs" / f"{name}_ref_rgb_var.exr")
 
 
-@pytest.mark.parametrize("name", VOLPATH)
+# The scenes whose reference test runs here: those where same-seed paths diverge from stock's
+# (the heterogeneous ones), and one homogeneous scene (the heavy-tailed area light, where stock
+# needs 256 spp) to keep the test's machinery honest. On the other homogeneous scenes ours equals
+# stock at the same seed, sample for sample (tests/runtime/test_volpath.py::
+# test_mitsuba_media_scene_matches_stock_at_the_same_seed and
+# test_mitsuba_volpathmis_scenes_match_stock_at_the_same_seed), and stock passes these references
+# in Mitsuba's own tests: their 256-spp renders here took ~100 s of the suite (issue 64 item 3).
+REFERENCE = sorted([n for n in VOLPATH if n.startswith("test_hetero")] + ["test_homo_area_light"])
+REFERENCE_MIS = [n for n in VOLPATHMIS if n.startswith("test_hetero")]
+
+
+def test_the_scenes_left_to_same_seed_are_tested_there():
+    """Every scene whose reference test is left out here is in test_volpath's same-seed lists."""
+    from test_volpath import MIS, SAME_SEED  # (a sibling test module: its folder is on sys.path)
+    assert set(VOLPATH) - set(REFERENCE) <= set(SAME_SEED)
+    assert set(VOLPATHMIS) - set(REFERENCE_MIS) <= set(MIS)
+
+
+@pytest.mark.parametrize("name", REFERENCE)
 def test_ours_passes_mitsubas_reference_test(name):
     ref, var = _refs(name)
     frac = _z_test_pass_fraction(_ours_xyz(f"{name}_volpath", REF_SPP), REF_SPP, ref, var)
     assert frac >= 0.9975, f"{frac:.4%} of pixel channels pass (Mitsuba asks 99.75%)"
 
 
-@pytest.mark.parametrize("name", VOLPATHMIS)
+@pytest.mark.parametrize("name", REFERENCE_MIS)
 def test_volpathmis_passes_mitsubas_reference_test(name):
     """(Mitsuba's test also renders every volpath scene with volpathmis against the same reference;
     not here, for the suite's time: volpathmis on media without spectral extinction is checked
