@@ -8,8 +8,10 @@ import numpy as np
 
 from layerbvh_mitsuba.ab import metrics
 from layerbvh_mitsuba.ab.render import load_scene
+from layerbvh_mitsuba.runtime import extreme_scale
 
-# A scene whose bounding box is larger than this, or smaller than its inverse, gets the referee:
+# A scene whose bounding box is larger than this, or smaller than its inverse (or than
+# extreme_scale.TINY_EXTENT), gets the referee:
 # float32 keeps 7 digits, and Mitsuba's epsilons (RayEpsilon ~9e-5, absolute below 1) and squared
 # norms (overflowing past ~1.8e19) are tuned for scenes near unit size.
 FAR_FROM_UNIT = 1e6
@@ -62,8 +64,10 @@ def extent(scene) -> float:
 
 
 def needed(scene) -> bool:
+    """Whether `scene` is far from unit size: beyond FAR_FROM_UNIT, or so small that our renders take
+    the unit-size scene's ray offsets, not stock's (runtime/extreme_scale.TINY_EXTENT)."""
     e = extent(scene)
-    return e > 0 and (e > FAR_FROM_UNIT or e < 1 / FAR_FROM_UNIT)
+    return e > 0 and (e > FAR_FROM_UNIT or e < max(1 / FAR_FROM_UNIT, extreme_scale.TINY_EXTENT))
 
 
 def unit_factor(e: float) -> float:

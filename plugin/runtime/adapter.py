@@ -83,6 +83,7 @@ class SceneTracer(RayQueries):
             self.tri_local = from_numpy(mi.UInt32, g.tri_local)
         self.normals = extreme_scale.FaceNormals.needed(scene, g.groups[0])
         self.far = extreme_scale.far_scene(scene)
+        self.tiny = extreme_scale.tiny_unit(scene)
         # numba's one-time kernel load is not build time (bvh.stats.kernel_load_s reports it).
         self.build_s = time.perf_counter() - t0 - self.bvh.stats.kernel_load_s
         self.reset_counters()
@@ -158,8 +159,15 @@ class SceneTracer(RayQueries):
         return si if self.normals is None else self.normals.repair(si, pi, ray, active)
 
     def shadow_ray(self, ref, p):
-        """Mitsuba's ray from `ref` to `p`, rebuilt where float32 lost it (extreme_scale)."""
-        return extreme_scale.spawn_ray_to(ref, p) if self.far else ref.spawn_ray_to(p)
+        """Mitsuba's ray from `ref` to `p`, rebuilt where float32 lost it, offset as at unit size in
+        a tiny scene (extreme_scale)."""
+        if self.far or self.tiny:
+            return extreme_scale.spawn_ray_to(ref, p, self.tiny)
+        return ref.spawn_ray_to(p)
+
+    def spawn(self, si, d):
+        """Mitsuba's ray leaving `si` along `d`, offset as at unit size in a tiny scene (extreme_scale)."""
+        return extreme_scale.spawn_ray(si, d, self.tiny) if self.tiny else si.spawn_ray(d)
 
     def intersect_inline(self, ray: mi.Ray3f, active) -> mi.PreliminaryIntersection3f:
         """As `intersect`, traced inline (usable in a symbolic loop)."""

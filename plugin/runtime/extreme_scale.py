@@ -1,4 +1,4 @@
-"""What Mitsuba's float32 surface code loses at extreme scales, repaired for our tracer (issue 56 item 2): geometric normals (a table of the scene's mesh face normals) and the shadow rays of emitter samples whose distance overflows."""
+"""What Mitsuba's float32 surface code loses at extreme scales, repaired for our tracer (issue 56 item 2): geometric normals (a table of the scene's mesh face normals), the shadow rays of emitter samples whose distance overflows, and spawned rays' offsets in a tiny scene."""
 from __future__ import annotations
 
 import drjit as dr
@@ -21,6 +21,13 @@ SQUARED_MARGIN = 1e3
 # 2 bounding-sphere radii away: scaled.xml at 1e18). A scene whose bounding box reaches FAR_EXTENT
 # (or fits in 1 / FAR_EXTENT) gets robust shadow rays.
 FAR_EXTENT = 2.0 ** 55
+# A spawned ray leaves its surface offset by (1 + max|p|) x RayEpsilon (Interaction::offset_p): an
+# absolute 9e-5 near the origin, which in a scene smaller than TINY_EXTENT passes a tenth of the
+# scene's size (scaled.xml at 1e-6: 47% of the pixels off its unit-scale render, the same on both
+# sides). There ours offsets by (unit + max|p|) x RayEpsilon, `unit` the power of two nearest the
+# scene's extent: exactly the offset of the scene rescaled to unit size, so its paths are the
+# unit-scale scene's (ab/referee.py renders that scene with stock).
+TINY_EXTENT = 1e-3
 NO_MESH = 0xFFFFFFFF  # `first` of a scene shape that is not one of the world's meshes
 
 
@@ -55,11 +62,39 @@ def far_scene(scene) -> bool:
     return bool(max(np.abs(lo).max(), np.abs(hi).max()) >= FAR_EXTENT or (hi - lo).max() <= 1 / FAR_EXTENT)
 
 
-def spawn_ray_to(ref, p):
-    """Mitsuba's `ref.spawn_ray_to(p)` (its origin, offset off the surface), with the direction and
-    length taken in a power-of-two unit wherever Mitsuba's came out lost (no direction, or an
-    infinite length): the same ray where Mitsuba's is whole."""
+def tiny_unit(scene) -> float | None:
+    """The power of two nearest `scene`'s bounding-box diagonal where it is under TINY_EXTENT."""
+    box = scene.bbox()
+    lo, hi = np.array(box.min, np.float64).ravel(), np.array(box.max, np.float64).ravel()
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))) or np.any(hi < lo):
+        return None
+    extent = float(np.linalg.norm(hi - lo))
+    return 2.0 ** round(np.log2(extent)) if 0 < extent < TINY_EXTENT else None
+
+
+def _offset(ref, d, unit: float):
+    """Interaction::offset_p with the offset's floor `unit` instead of 1."""
+    p = ref.p
+    mag = (unit + dr.maximum(dr.maximum(dr.abs(p.x), dr.abs(p.y)), dr.abs(p.z))) * mi.math.RayEpsilon
+    return dr.fma(dr.mulsign(mag, dr.dot(ref.n, d)), ref.n, p)
+
+
+def spawn_ray(ref, d, unit: float):
+    """`ref.spawn_ray(d)` with the offset of a scene `unit` times unit size (tiny_unit)."""
+    return mi.Ray3f(_offset(ref, d, unit), d, dr.largest(mi.Float), ref.time, ref.wavelengths)
+
+
+def spawn_ray_to(ref, p, unit: float | None = None):
+    """Mitsuba's `ref.spawn_ray_to(p)` (its origin, offset off the surface; with `unit`, the offset
+    of a tiny scene, see spawn_ray), with the direction and length taken in a power-of-two unit
+    wherever Mitsuba's came out lost (no direction, or an infinite length): the same ray where
+    Mitsuba's is whole."""
     ray = ref.spawn_ray_to(p)
+    if unit is not None:
+        o = _offset(ref, p - ref.p, unit)
+        d = p - o
+        dist = dr.norm(d)
+        ray = mi.Ray3f(o, d / dist, dist * (1 - mi.math.ShadowEpsilon), ref.time, ref.wavelengths)
     lost = ~(dr.isfinite(ray.maxt) & (dr.squared_norm(ray.d) > 0.5))
     d = p - ray.o
     unit = _unit(d)

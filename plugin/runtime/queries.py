@@ -32,6 +32,11 @@ class RayQueries(ABC):
         for the same reason as `surface`."""
         return ref.spawn_ray_to(p)
 
+    def spawn(self, si, d):
+        """The ray leaving surface interaction `si` along `d` (stock's `si.spawn_ray(d)`), through
+        here for the same reason as `surface`."""
+        return si.spawn_ray(d)
+
 
 class InlineQueries(RayQueries):
     """Our per_ray traversal inside the caller's kernel (the megakernel path)."""
@@ -52,6 +57,9 @@ class InlineQueries(RayQueries):
 
     def shadow_ray(self, ref, p):
         return self.tracer.shadow_ray(ref, p)
+
+    def spawn(self, si, d):
+        return self.tracer.spawn(si, d)
 
 
 class EmbreeQueries(RayQueries):

@@ -96,3 +96,32 @@ def test_a_shadow_ray_past_float32_range_is_rebuilt():
     near = mi.Point3f(4, -1, 2)
     whole, again = si.spawn_ray_to(near), extreme_scale.spawn_ray_to(si, near)
     assert np.array_equal(np.array(whole.d), np.array(again.d)) and np.array_equal(np.array(whole.maxt), np.array(again.maxt))
+
+
+def test_a_tiny_scene_offsets_its_rays_as_the_scene_at_unit_size():
+    """Stock offsets a spawned ray by (1 + max|p|) x RayEpsilon, 9e-5 near the origin whatever the
+    scene's size. In a scene under TINY_EXTENT ours offsets by (unit + max|p|) x RayEpsilon: the
+    unit-size scene's ray, scaled by the power of two `unit`, bit for bit (origins and the shadow
+    ray's length); a scene at unit size keeps stock's."""
+    unit = 2.0 ** -40
+    rng = np.random.default_rng(3)
+    p = rng.uniform(-1, 1, (3, 64)).astype(np.float32)
+    n = rng.normal(size=(3, 64))
+    n = (n / np.linalg.norm(n, axis=0)).astype(np.float32)
+    d = rng.normal(size=(3, 64))
+    d = (d / np.linalg.norm(d, axis=0)).astype(np.float32)
+    target = rng.uniform(-3, 3, (3, 64)).astype(np.float32)
+
+    def interaction(k):
+        si = mi.SurfaceInteraction3f()
+        si.p, si.n = mi.Point3f(*(p * k)), mi.Normal3f(*n)
+        return si
+    big, small = interaction(1.0), interaction(unit)
+    assert extreme_scale.tiny_unit(_scene(unit)) is not None and extreme_scale.tiny_unit(_scene()) is None
+    want, got = big.spawn_ray(mi.Vector3f(*d)), extreme_scale.spawn_ray(small, mi.Vector3f(*d), unit)
+    assert np.array_equal(np.array(got.o) / unit, np.array(want.o))
+    want = big.spawn_ray_to(mi.Point3f(*target))
+    got = extreme_scale.spawn_ray_to(small, mi.Point3f(*(target * unit)), unit)
+    assert np.array_equal(np.array(got.o) / unit, np.array(want.o))
+    assert np.allclose(np.array(got.maxt) / unit, np.array(want.maxt), rtol=1e-6)
+    assert not np.allclose(np.array(small.spawn_ray(mi.Vector3f(*d)).o) / unit, np.array(want.o), atol=1e-3)

@@ -137,7 +137,7 @@ def skip_area_emitters(queries: RayQueries, ray, pi, active, megakernel: bool):
     def step(ray, pi):
         hit_em = hits_emitter(ray, pi)
         si = queries.surface(pi, ray, mi.RayFlags.Minimal, hit_em)
-        ray = mi.Ray3f(dr.select(hit_em, si.spawn_ray(ray.d).o, ray.o), ray.d)
+        ray = mi.Ray3f(dr.select(hit_em, queries.spawn(si, ray.d).o, ray.o), ray.d)
         return ray, dr.select(hit_em, queries.intersect(ray, hit_em, hint="camera"), pi)
     _, pi = loop((ray, pi), cond=hits_emitter, body=step, symbolic=megakernel, label="layerbvh hide_emitters")
     return pi

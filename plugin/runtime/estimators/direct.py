@@ -124,7 +124,7 @@ class DirectEstimator:
                 return sampler, i + 1, result  # nothing a ray reaches emits (the samples are drawn all the same)
             bsdf_val = si.to_world_mueller(bsdf_val, -bs.wo, si.wi)
             active_b = active & dr.any(mi.unpolarized_spectrum(bsdf_val) != 0)
-            bray = si.spawn_ray(si.to_world(bs.wo))
+            bray = queries.spawn(si, si.to_world(bs.wo))
             kind = bounce_kind(mi, dr, bs.sampled_type, 0) if tr.recording else None
             si_b = queries.surface(queries.intersect(bray, active_b, hint="bounce", kind=kind), bray, mi.RayFlags.All,
                                    active_b)

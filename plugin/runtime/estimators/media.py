@@ -186,7 +186,7 @@ class MediaWalk:
         si = dr.select(intersect, self.hit(queries, ray, intersect, hint), si)
         if self.hide_emitters:
             skip = si.is_valid() & (si.shape.emitter() != None) & (depth == 0) & intersect  # noqa: E711
-            behind = si.spawn_ray(ray.d)
+            behind = queries.spawn(si, ray.d)
             pi = skip_area_emitters(queries, behind, queries.intersect(behind, skip, hint=hint), skip, megakernel)
             si = dr.select(skip, queries.surface(pi, behind, mi.RayFlags.All, skip), si)
         return si
@@ -289,7 +289,7 @@ class MediaWalk:
         bs, bsdf_weight = bsdf.sample(ctx, si, sample_1, sample_2, active_surface)
         active_surface, invalid_sample, w = W.bsdf_sampled(w, bs, bsdf_weight, si, channel, active_surface)
         eta = dr.select(active_surface, eta * bs.eta, eta)
-        ray = dr.select(active_surface, si.spawn_ray(si.to_world(bs.wo)), ray)
+        ray = dr.select(active_surface, queries.spawn(si, si.to_world(bs.wo)), ray)
         needs_intersection |= active_surface
 
         non_null = active_surface & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
@@ -384,7 +384,7 @@ class MediaWalk:
         total_dist = dr.select(active_surface, total_dist + si.t, total_dist)
         active_surface &= si.is_valid() & active & ~active_medium
         w = weigh.null_surface(w, si.bsdf(ray).eval_null_transmission(si, active_surface), si, channel, active_surface)
-        ray = dr.select(active_surface, si.spawn_ray(ray.d), ray)
+        ray = dr.select(active_surface, queries.spawn(si, ray.d), ray)
         ray.maxt = remaining
         needs_intersection |= active_surface
         active &= (active_medium | active_surface) & weigh.passes(w)

@@ -136,7 +136,7 @@ class PathEstimator:
         # a loop whose state comes back unchanged, and `select(active, 0 + 0, 0)` on the literal
         # it then substitutes is a new variable, which it refuses.)
         L = dr.select(active, p.L + Le + Lr_dir, p.L) if use.emitter_hits.on or use.emitter_sampling.on else p.L
-        ray = si.spawn_ray(si.to_world(bsdf_sample.wo))
+        ray = queries.spawn(si, si.to_world(bsdf_sample.wo))
         eta = dr.select(active, eta * bsdf_sample.eta, eta)
         beta = dr.select(active, beta * bsdf_weight, beta)
         valid = p.valid | (active & si.is_valid() & ~mi.has_flag(bsdf_sample.sampled_type, mi.BSDFFlags.Null))

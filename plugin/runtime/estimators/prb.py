@@ -135,7 +135,7 @@ class PRBEstimator:
 
         bs, bsdf_weight = bsdf.sample(ctx, si, sampler.next_1d(), sampler.next_2d(), active_next)
         L = s.L - Le - Lr_dir if replay else s.L + Le + Lr_dir
-        ray_next = si.spawn_ray(si.to_world(bs.wo))
+        ray_next = tr.queries.spawn(si, si.to_world(bs.wo))
         eta = s.eta * bs.eta
         beta = s.beta * bsdf_weight
 

@@ -79,7 +79,7 @@ class BasicPRBEstimator:
         beta = s.beta * bsdf_weight
         active_next &= dr.max(mi.unpolarized_spectrum(beta)) != 0
 
-        ray_next = si.spawn_ray(si.to_world(bs.wo))
+        ray_next = tr.queries.spawn(si, si.to_world(bs.wo))
         kind = bounce_kind(mi, dr, bs.sampled_type, s.depth) if tr.recording else None
         pi_next = tr.queries.intersect(ray_next, active_next, hint="bounce", kind=kind)
         dL = s.dL

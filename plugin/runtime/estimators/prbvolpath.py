@@ -197,7 +197,7 @@ class PRBVolPathEstimator:
             si = self._hit(tr, ray, si, intersect, hint)
             if self.hide_emitters:
                 skip = si.is_valid() & (si.shape.emitter() != None) & (depth == 0) & intersect  # noqa: E711
-                behind = si.spawn_ray(ray.d)
+                behind = tr.queries.spawn(si, ray.d)
                 pi = skip_area_emitters(tr.queries, behind, tr.queries.intersect(behind, skip, hint=hint), skip,
                                         tr.megakernel)
                 si = dr.select(skip, tr.queries.surface(pi, ray, mi.RayFlags.All, skip), si)
@@ -263,7 +263,7 @@ class PRBVolPathEstimator:
                     dr.select(active_surface, L / dr.maximum(1e-8, bsdf_eval), 0)))
             throughput = dr.select(active_surface, throughput * bsdf_weight, throughput)
             eta = dr.select(active_surface, eta * bs.eta, eta)
-            ray = dr.select(active_surface, si.spawn_ray(si.to_world(bs.wo)), ray)
+            ray = dr.select(active_surface, tr.queries.spawn(si, si.to_world(bs.wo)), ray)
             needs_intersection |= active_surface
             non_null = active_surface & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
             depth = dr.select(non_null, depth + 1, depth)
@@ -336,7 +336,7 @@ class PRBVolPathEstimator:
                 adj = (active_surface | active_medium) & (tr_mult > 0)
                 _push(t.active, tr_mult * dr.detach(dr.select(adj, dL * adj_emitted / tr_mult, 0)))
             transmittance = t.transmittance * dr.detach(tr_mult)
-            ray = dr.select(active_surface, dr.detach(si.spawn_ray(mi.Vector3f(ray.d))), ray)
+            ray = dr.select(active_surface, dr.detach(tr.queries.spawn(si, mi.Vector3f(ray.d))), ray)
             ray.maxt = dr.detach(remaining)
             active &= (active_medium | active_surface) & dr.any(transmittance != 0)
             total_dist = dr.select(active, t.total_dist + dr.select(active_medium, m.t, si.t), t.total_dist)

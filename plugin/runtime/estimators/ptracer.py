@@ -67,7 +67,7 @@ class ParticleTracerEstimator:
         tr.queries.occluded(tr.queries.shadow_ray(si, sensor_ds.p), hit & (sensor_ds.pdf > 0))
         s2 = sampler.next_2d(hit)
         bs, _ = si.bsdf(ray).sample(mi.BSDFContext(_IMPORTANCE), si, sampler.next_1d(hit), s2, hit)
-        tr.queries.intersect(si.spawn_ray(si.to_world(bs.wo)), hit, hint="light")
+        tr.queries.intersect(tr.queries.spawn(si, si.to_world(bs.wo)), hit, hint="light")
 
     def sample(self, scene, sensor, sampler, block, sample_scale, tr: Tracing) -> None:
         """One pass: every lane of `sampler` traces one light path into `block`."""
@@ -148,7 +148,7 @@ class ParticleTracerEstimator:
             q = dr.minimum(dr.max(mi.unpolarized_spectrum(throughput)) * dr.square(eta), 0.95)
             active = dr.select(use_rr, active & (sampler.next_1d(active) < q), active)
             throughput = dr.select(use_rr, throughput * dr.rcp(q), throughput)
-            ray = si.spawn_ray(si.to_world(bs.wo))
+            ray = queries.spawn(si, si.to_world(bs.wo))
             pi = queries.intersect(ray, active, hint="light")
             return active & pi.is_valid(), depth, ray, throughput, pi, eta, sampler
 
