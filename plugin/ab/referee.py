@@ -1,7 +1,6 @@
 """The extreme-scale referee (issue 56 item 2): a scene far from unit size rendered by stock once more, rescaled to unit size by a power of two, and which side's image matches it."""
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -56,11 +55,8 @@ def which_matches(stock_rel: float, ours_rel: float, stock_finite: bool = True, 
 
 def extent(scene) -> float:
     """The diagonal of `scene`'s bounding box (0 for an empty or infinite one)."""
-    box = scene.bbox()
-    lo, hi = np.array(box.min, np.float64).ravel(), np.array(box.max, np.float64).ravel()
-    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))) or np.any(hi < lo):
-        return 0.0
-    return float(np.linalg.norm(hi - lo))
+    box = extreme_scale.scene_box(scene)
+    return 0.0 if box is None else box[1]
 
 
 def needed(scene) -> bool:
@@ -72,7 +68,7 @@ def needed(scene) -> bool:
 
 def unit_factor(e: float) -> float:
     """The power of two that brings extent `e` nearest to 1 (exact: every coordinate keeps its bits)."""
-    return 2.0 ** -round(math.log2(e))
+    return 1.0 / extreme_scale.unit_of(e)
 
 
 def _scaled(mi, t, k: float):

@@ -53,23 +53,30 @@ def _unit(v):
     return dr.select(big > 2.0 ** 60, 2.0 ** -64, dr.select(big < 2.0 ** -60, 2.0 ** 64, 1.0))
 
 
-def far_scene(scene) -> bool:
-    """Whether `scene`'s bounding box reaches FAR_EXTENT, or its extent is under 1 / FAR_EXTENT."""
-    box = scene.bbox()
-    lo, hi = np.array(box.min, np.float64).ravel(), np.array(box.max, np.float64).ravel()
-    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))) or np.any(hi < lo):
-        return False  # an empty scene
-    return bool(max(np.abs(lo).max(), np.abs(hi).max()) >= FAR_EXTENT or (hi - lo).max() <= 1 / FAR_EXTENT)
-
-
-def tiny_unit(scene) -> float | None:
-    """The power of two nearest `scene`'s bounding-box diagonal where it is under TINY_EXTENT."""
+def scene_box(scene) -> tuple[float, float] | None:
+    """(largest |coordinate|, diagonal) of `scene`'s bounding box; None for an empty or infinite one."""
     box = scene.bbox()
     lo, hi = np.array(box.min, np.float64).ravel(), np.array(box.max, np.float64).ravel()
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))) or np.any(hi < lo):
         return None
-    extent = float(np.linalg.norm(hi - lo))
-    return 2.0 ** round(np.log2(extent)) if 0 < extent < TINY_EXTENT else None
+    return float(max(np.abs(lo).max(), np.abs(hi).max())), float(np.linalg.norm(hi - lo))
+
+
+def far_scene(scene) -> bool:
+    """Whether `scene`'s bounding box reaches FAR_EXTENT, or its diagonal is under 1 / FAR_EXTENT."""
+    box = scene_box(scene)
+    return box is not None and (box[0] >= FAR_EXTENT or box[1] <= 1 / FAR_EXTENT)
+
+
+def unit_of(extent: float) -> float:
+    """The power of two nearest `extent` (in log scale): a scene's length unit, exact to scale by."""
+    return 2.0 ** round(np.log2(extent))
+
+
+def tiny_unit(scene) -> float | None:
+    """unit_of `scene`'s bounding-box diagonal where it is under TINY_EXTENT."""
+    box = scene_box(scene)
+    return unit_of(box[1]) if box is not None and 0 < box[1] < TINY_EXTENT else None
 
 
 def _offset(ref, d, unit: float):
