@@ -75,6 +75,11 @@ class PRBEstimator:
     def sample(self, mode, scene, sampler, ray: mi.Ray3f, dL, state_in, active, tr: Tracing):
         """(L or dL, valid, aovs, L) of the paths starting with camera rays `ray`, in AD `mode`
         (Mitsuba's ADIntegrator.sample)."""
+        # As stock prb (prb.py @ v3.9.1: `ray = mi.Ray3f(dr.detach(ray))`; prb_basic and
+        # prbvolpath keep the ray as given). Not observable through mi.render, which samples camera
+        # rays under dr.suspend_grad; a direct sample() with a differentiable camera ray fails on
+        # stock itself (prb: "not attached to the AD graph"; prb_basic: ad_traverse in forward mode).
+        ray = mi.Ray3f(dr.detach(ray))
         state = self.start(mode, ray, camera_hits(tr, ray, active, self.hide_emitters), active, dL, state_in)
         textured = _textured_area_emitters(scene)
         sampler, state = loop((sampler, state), cond=lambda sampler, s: s.active,
