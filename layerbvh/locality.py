@@ -216,8 +216,8 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
 # -- one row of numbers ------------------------------------------------------------------------------
 @dataclass
 class LocalityRow:
-    """What one kind of rays costs in one mode, warp width and preset, per ray (see README:
-    'What the locality numbers mean'). Transactions and cache figures are of the traversal kernels'
+    """What one kind of rays costs in one mode, warp width and preset, per ray (docs/guide.md,
+    locality: 'What the numbers mean'). Transactions and cache figures are of the traversal kernels'
     loads; sort_bytes_per_ray is what the layer modes move between steps (0 for per_ray)."""
 
     kind: str

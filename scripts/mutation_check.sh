@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Mutation check (README, "Testing"): applies named, realistic bugs to a temporary copy of this
+# Mutation check (docs/testing.md): applies named, realistic bugs to a temporary copy of this
 # checkout one at a time and runs the tests that should catch each; one line per mutation,
 # `caught` or `MISSED`; exit status non-zero if any is missed or no longer applies. A few
 # minutes. Needs the test environment (bash scripts/test.sh creates .venv); arguments go to

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The test command (README, CI): bootstrap, then the whole pytest suite in two processes
 # (pytest-xdist, one file per process at a time): much of the suite's time is LLVM compiling
-# kernels on one thread, which the second process overlaps (times from fresh clones: README,
-# Testing). Extra arguments go to pytest (`-n 0` runs it in one process).
+# kernels on one thread, which the second process overlaps (times from fresh clones: docs/testing.md).
+# Extra arguments go to pytest (`-n 0` runs it in one process).
 #
 # It can never hang (issue 39): a test running past pytest-timeout's limit (pyproject.toml) ends
 # its process; a worker that dies (that, or an abort) stops the run naming its test

@@ -278,7 +278,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=float, default=300.0, help="seconds per scene (default 300)")
     p.add_argument("--md", help="also write the markdown table here (atomically)")
     p.add_argument("--json", help="write the raw figures here as JSON (atomically)")
-    p.add_argument("--readme", action="store_true", help="also splice the table into README.md (section third_party)")
+    p.add_argument("--readme", action="store_true", help="also splice the table into docs/scenes.md (section third_party)")
     p.add_argument("--out", default=str(ROOT / "out" / "third_party"),
                    help="the sweep folder (points, results.csv, summary.md, index.html; default out/third_party)")
     where = p.add_mutually_exclusive_group()
@@ -406,7 +406,7 @@ def main(argv=None) -> int:
         atomic.write_text(args.md, md)
     if args.readme:
         from update_readme import readme_body  # local: a script module, on sys.path only when run from scripts/
-        atomic.splice_section(ROOT / "README.md", "third_party", readme_body(md))
+        atomic.splice_section(ROOT / "docs" / "scenes.md", "third_party", readme_body(md))
     if args.json:
         raw = {"command": cmdline, "root": args.root, "res": args.res, "spp": args.spp, "seed": args.seed,
                "traversal": args.traversal, "media_traversal": args.media_traversal, "variant": args.variant,

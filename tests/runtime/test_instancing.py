@@ -28,7 +28,7 @@ def test_instanced_scene_matches_stock(name, traversal, tmp_path):
     # triangles' size) from the rays' origins, where the float32 barycentrics of any triangle
     # test (Embree's and ours) are noisy to ~1e-3; same-seed paths then drift apart after a few
     # bounces. A flattened copy (no instances) drifts alike: 96.5% of pixels within 1e-3 at
-    # max_depth 10, 95.8% instanced (README, "Instances"); the Z-test below covers full depth.
+    # max_depth 10, 95.8% instanced (docs/guide.md, "Instances"); the Z-test below covers full depth.
     #
     # Even at max_depth 3 one pixel of 1024 falls outside the same-seed tolerance, on AVX-512 and
     # with LAYERBVH_LLVM_ISA=avx2 alike (docs/cpu_margins/table.json): the default criterion

@@ -64,7 +64,7 @@ def test_scene_declares_parameters_and_matches_stock(path):
     _declares_parameters(path)
     # The default traversal, as a user renders the scene (the layer modes: below, and
     # tests/runtime/test_mitsuba_backend.py, tests/runtime/test_instancing.py). instanced_bunnies at max_depth 3:
-    # its same-seed paths drift apart after a few bounces (README, "Instances"; 4.3% of pixels
+    # its same-seed paths drift apart after a few bounces (docs/guide.md, "Instances"; 4.3% of pixels
     # at full depth here); tests/runtime/test_instancing.py's Z-test covers full depth.
     params = {"max_depth": 3} if path.stem == "instanced_bunnies" else {}
     r = testing.same_seed(path, spp=4, res=(16, 16), traversal="auto", **params)

@@ -50,7 +50,7 @@ def prepare(scene: str, out: Path, preset: str, configs, res, spp: int, rays_per
         rows += [r.as_dict() for r in rows_of(run.as_dict())]
         checks += run.checks
     arrays = {"vertices": np.asarray(v, np.float32), "faces": np.asarray(f, np.int64)}
-    # Hits are the same on every tree and mode (README: exactness), so one replay gives them all.
+    # Hits are the same on every tree and mode (docs/method.md: exactness), so one replay gives them all.
     bvh = layerbvh.build(v, f, treelet_height=configs[0][1], branching=configs[0][0],
                          batch_rays=max(len(s.o) for s in sets))
     for s in sets:  # the replay's hits: what the LLVM kernel returns, bit for bit (checked in measure)

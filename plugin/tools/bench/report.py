@@ -1,4 +1,4 @@
-"""Turn benchmark JSON (bench_traversal.py, bench_scaling.py) into BENCHMARKS.md with its plots, and the README's headline."""
+"""Turn benchmark JSON (bench_traversal.py, bench_scaling.py) into BENCHMARKS.md with its plots, and the headline of docs/results.md."""
 from __future__ import annotations
 
 import argparse
@@ -383,7 +383,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=str(ROOT / "BENCHMARKS.md"))
     p.add_argument("--figures", default=str(ROOT / "docs" / "bench"), help="folder for the plots")
     p.add_argument("--converge", action="append", default=[], help="a `layerbvh converge` output folder (repeatable)")
-    p.add_argument("--readme", action="store_true", help="also splice the headline into README.md")
+    p.add_argument("--readme", action="store_true", help="also splice the headline into docs/results.md")
     p.add_argument("--locality", action="append", default=[],
                    help="a locality.json (`layerbvh locality`, or a locality sweep's merged one; repeatable, merged): "
                         "its section; without --bench only that section of the existing document is replaced")
@@ -416,7 +416,7 @@ def main(argv=None) -> int:
     kept = [block for name in KEPT_SECTIONS if (block := kept_section(out, name))]
     atomic.write_text(out, document(bench, scaling, str(rel), conv, loc, gpu, kept))
     if args.readme:
-        atomic.splice_section(ROOT / "README.md", "bench_headline", readme_headline(bench))
+        atomic.splice_section(ROOT / "docs" / "results.md", "bench_headline", readme_headline(bench))
     print(f"wrote {out} and plots in {figs}")
     return 0
 
