@@ -1,0 +1,28 @@
+"""The README's status matrix (tools/status_matrix.py): every test it names exists, and the README holds what the script writes."""
+from __future__ import annotations
+
+from layerbvh_mitsuba import atomic
+from layerbvh_mitsuba.repo import ROOT
+from layerbvh_mitsuba.tools import status_matrix as sm
+
+
+def test_every_named_test_is_collected():
+    """A claim whose test was renamed or deleted must not stay on the README (pytest --collect-only)."""
+    assert sm.nodes()
+    gone = sm.missing_nodes()
+    assert gone == [], f"the README's status matrix names tests that do not exist: {gone}"
+
+
+def test_a_missing_test_is_named():
+    """The check can fail: a node id that no test has is reported."""
+    row = sm.Row("path", sm.Cell("same seed", ("tests/runtime/test_mitsuba_backend.py::test_no_such_test",)))
+    assert sm.missing_nodes((row,)) == ["tests/runtime/test_mitsuba_backend.py::test_no_such_test"]
+
+
+def test_the_readme_holds_the_generated_matrix():
+    text = (ROOT / "README.md").read_text()
+    start, end = atomic.section_markers(sm.SECTION)
+    assert text[text.index(start) + len(start):text.index(end)].strip() == sm.markdown().strip(), \
+        "README's status matrix is stale: run .venv/bin/python scripts/status_matrix.py --readme"
+    for row in sm.ROWS:  # one row per mirrored integrator
+        assert f"| `{row.integrator}` |" in text
