@@ -183,6 +183,12 @@ MUTATIONS = (
              '(R + "test_depth.py::test_depth_matches_stock_depth_at_the_same_seed[cbox-per_ray]",)',
              '(R + "test_depth.py::test_depth_matches_stock_depth_at_the_same_seed[cbox-layer_sorted]",)',
              ("tests/tools/test_status_matrix.py::test_every_named_test_is_collected",)),
+    Mutation("alias_copies", "the entry stack's write alias is a copy (what a Dr.Jit upgrade that copies in "
+             "import_tensor would do)",
+             "layerbvh/wavefront.py",
+             "    return dr.detail.import_tensor(a, False).array\n",
+             "    return type(a)(dr.detail.import_tensor(a, False).array.numpy().copy())\n",
+             ("tests/engine/test_drjit_private_api.py::test_import_tensor_aliases_the_memory_of_an_evaluated_array",)),
     Mutation("mis_weight_swapped", "the power heuristic weighs by the other strategy's pdf",
              "plugin/runtime/estimators/common.py",
              "w = a2 / (a2 + b2)",
