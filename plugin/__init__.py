@@ -1,4 +1,4 @@
-"""layerbvh_mitsuba: the Mitsuba 3 side of layerbvh; once Mitsuba is imported (before or after this package), our integrators (`layerbvh`, `layerbvh_direct`, `layerbvh_volpath`, `layerbvh_volpathmis`, `layerbvh_depth`, `layerbvh_ptracer`: runtime/registry.py) are registered with every variant set.
+"""layerbvh_mitsuba: the Mitsuba 3 side of layerbvh; once Mitsuba is imported (before or after this package), our integrators (`layerbvh`, `layerbvh_direct`, `layerbvh_volpath`, `layerbvh_volpathmis`, `layerbvh_depth`, `layerbvh_ptracer`, `layerbvh_prb`, `layerbvh_prb_basic`, `layerbvh_prbvolpath`: runtime/registry.py PLUGINS; stock's `stokes`, `aov` and `moment` wrap them) are registered with every variant set; `layerbvh_mitsuba.register()` does it explicitly.
 
 Importing this package imports nothing heavy itself: pytest loads our plugin (`pytest_plugin`, an
 entry point) in every run of a user's environment, and a run that never touches a scene should not

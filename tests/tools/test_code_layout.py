@@ -182,3 +182,13 @@ def test_no_init_called_by_name_across_classes():
                     and isinstance(node.func.value, ast.Name):
                 bad.append(f"{path.relative_to(ROOT)}:{node.lineno}: {node.func.value.id}.__init__")
     assert not bad, bad
+
+
+def test_the_package_docstrings_name_every_integrator():
+    """The package's and the estimators' docstrings list every integrator we register (issue 58:
+    they listed 6 of 9)."""
+    import layerbvh_mitsuba
+    from layerbvh_mitsuba.runtime import estimators, registry
+    for plugin, (_, estimator) in registry.PLUGINS.items():
+        assert f"`{plugin}`" in layerbvh_mitsuba.__doc__, plugin
+        assert estimator.__module__.rsplit(".", 1)[-1] in estimators.__doc__, plugin
