@@ -1,0 +1,52 @@
+"""The documentation cannot go stale in the ways a script can see (issue 58): the README stays one screen, and every relative link in the README, docs/ and the generated reports leads to a file (and a heading) that exists."""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from layerbvh_mitsuba.repo import ROOT
+
+README_MAX_LINES = 200
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), *sorted((ROOT / "docs").glob("*/*.md")),
+         ROOT / "BENCHMARKS.md", ROOT / "PERFORMANCE.md", ROOT / "STABILITY.md"]
+LINK = re.compile(r"\]\(([^)\s]+)\)")
+
+
+def _slug(heading: str) -> str:
+    """GitHub's anchor of a markdown heading: lower case, punctuation dropped, spaces to hyphens."""
+    text = re.sub(r"[`*_]", "", heading.strip().lower())
+    return re.sub(r"\s", "-", re.sub(r"[^\w\s-]", "", text))
+
+
+def _anchors(page: Path) -> set[str]:
+    return {_slug(line.lstrip("#")) for line in page.read_text().splitlines() if line.startswith("#")}
+
+
+def broken_links(pages=PAGES, root: Path = ROOT) -> list[str]:
+    """'page: target' for every relative link whose file, or whose #heading, is not there."""
+    bad = []
+    for page in pages:
+        for target in LINK.findall(page.read_text()):
+            if target.startswith(("http://", "https://", "mailto:")):
+                continue
+            path, _, anchor = target.partition("#")
+            dest = (page.parent / path).resolve() if path else page
+            if not dest.exists() or (anchor and dest.suffix == ".md" and anchor not in _anchors(dest)):
+                bad.append(f"{page.relative_to(root)}: {target}")
+    return bad
+
+
+def test_the_readme_is_one_screen():
+    n = len((ROOT / "README.md").read_text().splitlines())
+    assert n <= README_MAX_LINES, f"README.md has {n} lines: move detail into docs/"
+
+
+def test_every_relative_link_resolves():
+    assert broken_links() == []
+
+
+def test_a_broken_link_is_found(tmp_path):
+    """The check can fail: a missing file and a missing heading are both named, a good one not."""
+    page = (tmp_path / "page.md").resolve()
+    page.write_text("# A title\n\n[gone](nowhere.md) [here](#a-title) [there](#no-such-heading)\n")
+    assert broken_links([page], page.parent) == ["page.md: nowhere.md", "page.md: #no-such-heading"]
