@@ -194,6 +194,12 @@ MUTATIONS = (
              "| [Python API](docs/api.md) |",
              "| [Python API](docs/python_api.md) |",
              ("tests/tools/test_docs.py::test_every_relative_link_resolves",)),
+    Mutation("early_verdict_uncounted_pixels", "the verdict's early 'differs' counts no independent pixel tests in "
+             "(its thresholds laxer than the whole family's)",
+             "plugin/ab/hypotheses.py",
+             '"pixel": panels * w * h * channels}',
+             '"pixel": 0}',
+             ("tests/tools/test_hypotheses.py::test_the_planned_counts_are_what_the_independent_tests_make[film0-1]",)),
     Mutation("mis_weight_swapped", "the power heuristic weighs by the other strategy's pdf",
              "plugin/runtime/estimators/common.py",
              "w = a2 / (a2 + b2)",

@@ -92,6 +92,8 @@ class Verdict:
         if z is not None:
             w, h = z.resolution
             tail += f" (independent seeds: {w}x{h}, {z.spp} spp per side, {z.seconds:.1f} s)"
+        elif self.family is not None and self.family.planned and self.family.rejected:
+            tail += " (the paired tests decided: no independent-seed renders were needed)"
         return diverged + tail
 
     def as_dict(self) -> dict:
@@ -241,6 +243,13 @@ def judge(mi, scene_path, stock_img: np.ndarray, ours_img: np.ndarray, spp: int,
     if s["passed"]:
         family = hypotheses.Family(paired, names)
         return Verdict(metrics.verdict_label(True, family.rejected), s, family=family)
+    # The family's thresholds are fixed per level by its size (Bonferroni), so a paired test that
+    # rejects with the independent-seed tests counted in rejects whatever they find: "differs"
+    # without their renders (the full family would say the same, at their cost).
+    planned = hypotheses.independent_counts(metrics.z_test_film(w, h), len(names), stock_img.shape[-1])
+    early = hypotheses.Family(paired, names, planned=planned)
+    if early.rejected:
+        return Verdict(metrics.verdict_label(False, True), s, family=early)
     z = statistical_step(mi, scene_path, (w, h), w * h * spp, stock, ours, params, ours_modify, wrap, seed)
     family = hypotheses.Family(paired + z.tests, names)
     return Verdict(metrics.verdict_label(False, family.rejected), s, z, family)

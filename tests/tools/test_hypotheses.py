@@ -107,6 +107,36 @@ def test_one_correction_over_every_test():
     assert f.counts == {"image": 6, "tile": 2 * 16 * 3, "pixel": H * W * 3}
 
 
+@pytest.mark.parametrize("film,panels", [((32, 32), 1), ((32, 18), 1), ((13, 7), 5)])
+def test_the_planned_counts_are_what_the_independent_tests_make(film, panels):
+    """independent_counts, which the verdict counts in before the renders exist, must be the
+    counts `independent` then makes (else the early thresholds would not be the family's)."""
+    rng = np.random.default_rng(4)
+    w, h = film
+    moments = [hy.Moments(rng.random((h, w * panels, 3)), rng.random((h, w * panels, 3)), 8) for _ in range(2)]
+    made = hy.Family(hy.independent(*moments, panels=panels), tuple(str(p) for p in range(panels))).counts
+    assert hy.independent_counts(film, panels) == made
+
+
+def test_an_early_rejection_is_a_rejection_of_the_whole_family():
+    """A paired test that rejects with the independent tests counted in (Family.planned) rejects
+    in the family that holds them, with the same statistic, whatever they find: the verdict's
+    'differs' without the independent-seed renders is the full verdict's. And a bias too small
+    for the whole family's threshold is not decided early."""
+    rng = np.random.default_rng(9)
+    base = _base(rng)
+    stock = base + rng.normal(0, 0.1, base.shape)
+    indep = hy.independent(_moments(rng, base, 4), _moments(rng, base, 4))
+    planned = hy.independent_counts((W, H))
+    for bias, decided in ((0.02, True), (0.0004, False)):
+        paired = hy.paired(stock, stock + _shared_noise(rng, 0, 0.005) + bias * base, 0, hy.TILE)
+        early = hy.Family(paired, planned=planned)
+        full = hy.Family(paired + indep)
+        assert early.counts == full.counts and early.rejected == decided, (bias, early.summary())
+        assert [(r.level, r.region, r.channel, r.z) for r in early.rejections] == \
+            [(r.level, r.region, r.channel, r.z) for r in full.rejections if r.kind == hy.PAIRED]
+
+
 def test_the_map_marks_the_rejected_tile():
     rng = np.random.default_rng(4)
     stock = _base(rng)
