@@ -25,3 +25,5 @@ __all__ = ["AUTO", "AutoPolicy", "choice_key", "BATCH_RAYS", "TRACE_MODES", "bui
 __version__ = "0.1.0"
 
 apply_llvm_isa_from_env()  # LAYERBVH_LLVM_ISA: before any kernel is compiled
+from .kernel_census import start_from_env as _census
+_census()  # LAYERBVH_KERNEL_CENSUS: off unless set (scripts/kernel_census.py)

@@ -50,3 +50,12 @@ def pytest_runtest_logstart(nodeid, location):
 def pytest_runtest_logfinish(nodeid, location):
     _running.pop(nodeid, None)
     _write_running()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_call(item):
+    yield
+    # The kernel census (LAYERBVH_KERNEL_CENSUS, scripts/kernel_census.py): what this test and its
+    # fixtures compiled, recorded while PYTEST_CURRENT_TEST still names it.
+    from layerbvh import kernel_census
+    kernel_census.flush()
