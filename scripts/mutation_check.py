@@ -194,6 +194,18 @@ MUTATIONS = (
              "| [Python API](docs/api.md) |",
              "| [Python API](docs/python_api.md) |",
              ("tests/tools/test_docs.py::test_every_relative_link_resolves",)),
+    Mutation("census_literals_kept", "the kernel census groups kernels by their whole IR (literals kept), so "
+             "no literal family is ever found",
+             "layerbvh/kernel_census.py",
+             'hashlib.blake2b(_LITERAL.sub("#", ir).encode()',
+             'hashlib.blake2b(ir.encode()',
+             ("tests/engine/test_kernel_census.py::test_the_census_records_compiles_and_groups_literal_variants",)),
+    Mutation("site_links_unmoved", "the documentation site keeps the README's GitHub links (docs/...), which "
+             "lead nowhere in the site",
+             "scripts/mkdocs_hooks.py",
+             'new = target[len("docs/"):] if target.startswith("docs/") else TOP.get(target, target)',
+             'new = target',
+             ("tests/tools/test_docs.py::test_the_site_builds_strict_with_every_page_and_the_cli",)),
     Mutation("early_verdict_uncounted_pixels", "the verdict's early 'differs' counts no independent pixel tests in "
              "(its thresholds laxer than the whole family's)",
              "plugin/ab/hypotheses.py",

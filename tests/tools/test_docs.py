@@ -1,7 +1,11 @@
 """The documentation cannot go stale in the ways a script can see (issue 58): the README stays one screen, and every relative link in the README, docs/ and the generated reports leads to a file (and a heading) that exists."""
 from __future__ import annotations
 
+import os
 import re
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 from layerbvh_mitsuba.repo import ROOT
@@ -50,3 +54,38 @@ def test_a_broken_link_is_found(tmp_path):
     page = (tmp_path / "page.md").resolve()
     page.write_text("# A title\n\n[gone](nowhere.md) [here](#a-title) [there](#no-such-heading)\n")
     assert broken_links([page], page.parent) == ["page.md: nowhere.md", "page.md: #no-such-heading"]
+
+
+def _build_site(root: Path, out: Path) -> subprocess.CompletedProcess:
+    """`mkdocs build --strict` of the site at `root` (its mkdocs.yml) into `out` (not -q: quiet, the
+    warnings that strict counts are not raised)."""
+    env = dict(os.environ, NO_MKDOCS_2_WARNING="1")  # (Material's notice about MkDocs 2, on every build)
+    return subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "-f", str(root / "mkdocs.yml"),
+                           "-d", str(out)], capture_output=True, text=True, env=env, timeout=300)
+
+
+def test_the_site_builds_strict_with_every_page_and_the_cli(tmp_path):
+    """The documentation site (mkdocs.yml) builds with no warning: every page in the nav, every
+    link and #anchor found in the site's own tree; the top-level pages and the CLI reference are in it."""
+    r = _build_site(ROOT, tmp_path / "site")
+    assert r.returncode == 0, r.stdout + r.stderr
+    site = tmp_path / "site"
+    home = (site / "index.html").read_text()
+    assert 'href="guide/"' in home and 'href="BENCHMARKS/"' in home  # (the README's links, moved)
+    cli = (site / "cli" / "index.html").read_text()
+    assert "layerbvh compare" in cli and "--grad" in cli
+
+
+def test_a_broken_site_link_fails_the_build(tmp_path):
+    """The strict build can fail: the same site with one link to a heading that is not there."""
+    copy = tmp_path / "repo"
+    (copy / "scripts").mkdir(parents=True)
+    shutil.copy(ROOT / "mkdocs.yml", copy)
+    shutil.copy(ROOT / "scripts" / "mkdocs_hooks.py", copy / "scripts")
+    for name in ("README.md", "BENCHMARKS.md", "PERFORMANCE.md", "STABILITY.md"):
+        shutil.copy(ROOT / name, copy)
+    shutil.copytree(ROOT / "docs", copy / "docs")
+    page = copy / "docs" / "verdict.md"
+    page.write_text(page.read_text() + "\nSee [the method](method.md#no-such-heading).\n")
+    r = _build_site(copy, tmp_path / "site")
+    assert r.returncode != 0 and "no-such-heading" in r.stdout + r.stderr, r.stdout + r.stderr

@@ -1,0 +1,61 @@
+"""MkDocs hooks (mkdocs.yml): the site is docs/ plus the top-level pages (README as its home,
+BENCHMARKS, PERFORMANCE, STABILITY) and a CLI reference generated from the argparse parser, with
+the links that work on GitHub rewritten to where the pages lie in the site.
+
+On GitHub, README.md links `docs/guide.md` and docs/guide.md links `../README.md`; in the site
+every page lies in one tree with the README at `index.md`, so the hooks move those links there.
+Nothing is written into the working tree: the top-level pages and the CLI page are generated files.
+"""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from mkdocs.structure.files import File
+
+ROOT = Path(__file__).resolve().parents[1]
+# Top-level page -> its place in the site.
+TOP = {"README.md": "index.md", "BENCHMARKS.md": "BENCHMARKS.md", "PERFORMANCE.md": "PERFORMANCE.md",
+       "STABILITY.md": "STABILITY.md"}
+CLI_PAGE = "cli.md"
+_LINK = re.compile(r"\]\(([^)\s#]*)(#[^)\s]*)?\)")
+
+
+def cli_reference() -> str:
+    """Every command's --help, from the parser `layerbvh` runs (plugin/cli.py)."""
+    from layerbvh_mitsuba import cli
+    parser = cli._parser()
+    out = ["# Command-line reference", "",
+           "Generated from `layerbvh`'s argparse parser when the site is built (scripts/mkdocs_hooks.py).", "",
+           "```text", parser.format_help().rstrip(), "```", ""]
+    for action in parser._subparsers._group_actions:
+        for name, sub in action.choices.items():
+            out += [f"## layerbvh {name}", "", "```text", sub.format_help().rstrip(), "```", ""]
+    return "\n".join(out)
+
+
+def on_files(files, config):
+    for src, dest in TOP.items():
+        files.append(File.generated(config, dest, content=(ROOT / src).read_text()))
+    files.append(File.generated(config, CLI_PAGE, content=cli_reference()))
+    return files
+
+
+def on_page_markdown(markdown, page, config, files):
+    uri = page.file.src_uri
+    top_level = page.file.generated_by is not None and uri in TOP.values() and uri != CLI_PAGE
+    depth = uri.count("/")
+
+    def move(m):
+        target, anchor = m.group(1), m.group(2) or ""
+        if not target or target.startswith(("http://", "https://", "mailto:")):
+            return m.group(0)
+        if top_level:
+            new = target[len("docs/"):] if target.startswith("docs/") else TOP.get(target, target)
+        else:
+            new = target
+            up = "../" * (depth + 1)
+            if target.startswith(up) and target[len(up):] in TOP:
+                new = "../" * depth + TOP[target[len(up):]]
+        return f"]({new}{anchor})"
+    return _LINK.sub(move, markdown)
