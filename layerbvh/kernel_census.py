@@ -14,6 +14,9 @@ import drjit as dr
 # kernel launch that was not found in Dr.Jit's in-memory cache to FOLDER/<pid>.jsonl. Off by
 # default: the kernel history keeps every launch's IR until it is read.
 ENV = "LAYERBVH_KERNEL_CENSUS"
+# Set as well, each compiled kernel's LLVM IR goes to FOLDER/ir/<hash>.ll, for diffing the members
+# of a literal family (which constant differs, and where it comes from).
+ENV_IR = "LAYERBVH_KERNEL_CENSUS_IR"
 
 # Literals (decimal, hex, the kernel's own hash in its name) are what two kernels of one
 # "family" differ in when a size or a constant was baked into the code instead of passed opaque.
@@ -35,6 +38,10 @@ def _record(entries) -> None:
             continue  # found in this process's memory (no compile, no disk read), or not a traced kernel
         ir = k.get("ir")
         text = ir.getvalue() if hasattr(ir, "getvalue") else str(ir or "")
+        if os.environ.get(ENV_IR) and not k.get("cache_disk"):
+            os.makedirs(os.path.join(os.path.dirname(_path), "ir"), exist_ok=True)
+            with open(os.path.join(os.path.dirname(_path), "ir", f"{k.get('hash')}.ll"), "w") as f:
+                f.write(text)
         lines.append(json.dumps({"test": test, "hash": k.get("hash"), "family": family(text),
                                  "disk": bool(k.get("cache_disk")), "ops": k.get("operation_count"),
                                  "size": k.get("size"),

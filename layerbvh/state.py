@@ -104,6 +104,13 @@ class RayRecords:
         dr.eval(rec)
         self.rec = rec
 
+    @classmethod
+    def over(cls, m, rec) -> "RayRecords":
+        """The records `rec` (another RayRecords' array) as a RayRecords, with no copy."""
+        rays = cls.__new__(cls)
+        rays.m, rays.rec = m, rec
+        return rays
+
     def load(self, slot):
         """(origin, direction) of the rays in `slot`, as three Floats each (one packet load)."""
         x = dr.gather(self.m.ArrayXf, self.rec, slot, shape=(self.STRIDE, dr.width(slot)))
@@ -126,9 +133,11 @@ class StateRecords:
         return COMPACT_RECORD_WORDS if fits else STATE_RECORD_WORDS
 
     @staticmethod
-    def write(m, s: "RayState", active, words: int):
+    def write(m, s: "RayState", active, words: int, into=None):
         """The records of the lanes of `s` where `active` (the rays that go on), in lane order (a
-        flat UInt32 array, `words` words a lane; the others' rows are left unwritten)."""
+        flat UInt32 array, `words` words a lane; the others' rows are left unwritten), into a new
+        array or into `into` (a frozen step's: an array allocated inside one has the size of the
+        call it was recorded at, whatever the lanes of a later call)."""
         n = dr.width(s.link)
         t = dr.reinterpret_array(m.UInt32, s.t)
         if words == COMPACT_RECORD_WORDS:
@@ -137,7 +146,7 @@ class StateRecords:
             spare = dr.full(m.UInt32, MISS, n)
             w = [t] + [getattr(s, f) for f in LEAN_STATE[1:]] \
                 + [s.inst if s.inst is not None else spare, s.hit_inst if s.hit_inst is not None else spare]
-        rec = dr.empty(m.UInt32, n * words)
+        rec = dr.empty(m.UInt32, n * words) if into is None else into
         dr.scatter(rec, m.ArrayXu(w), dr.arange(m.UInt32, n), active)
         return rec
 
@@ -242,6 +251,18 @@ class Results:
 
     def arrays(self) -> tuple:
         return (self.t, self.u, self.v, self.prim, *self.work.values()) + ((self.inst,) if self.inst is not None else ())
+
+    def fields(self) -> dict:
+        """The arrays by name (a PyTree: what a frozen step takes, `over` gives back)."""
+        return {"t": self.t, "u": self.u, "v": self.v, "prim": self.prim, "inst": self.inst, "work": self.work}
+
+    @classmethod
+    def over(cls, fields: dict) -> "Results":
+        """Results writing into the arrays of `fields` (another Results' `fields()`), no copy."""
+        res = cls.__new__(cls)
+        for k, v in fields.items():
+            setattr(res, k, v)
+        return res
 
     def write_hits(self, s: RayState, u, v, mask) -> None:
         """The closest hits of the rays `mask` (hit t, prim and instance from `s`), by slot."""

@@ -36,6 +36,7 @@ class TraceStats:
     work_bytes: int = 0
     tail_rays: int = 0  # rays finished by one per-ray kernel after the last sorted step
     batches: int = 1  # ray batches traced one after another (LayerBVH.batch_rays bounds memory)
+    frozen: bool = False  # the wavefront steps replayed frozen kernels (wavefront.FROZEN_STACK_BYTES)
 
     def absorb(self, other: "TraceStats") -> None:
         """Add the figures of one more ray batch traced with the same mode."""

@@ -1,6 +1,7 @@
 """Trace drivers: one kernel per batch (per_ray) and sorted/unsorted wavefront steps over treelets."""
 from __future__ import annotations
 
+import os
 import time
 
 import drjit as dr
@@ -25,6 +26,16 @@ TAIL_FRACTION = 0.25
 # boxes all overlap (long thin triangles turned at random: the stability suite's slivers) took
 # ~430 steps per batch, seconds of host time for 10,000 rays. A step cap bounds that.
 TAIL_STEPS = 32
+# Where a trace's entry stacks are at most this many bytes, its step and tail kernels are frozen
+# (dr.freeze): recorded once per tree and batch shape, then replayed without tracing the walk in
+# Python again (PERFORMANCE.md entry 54: 47 ms -> 2 ms per 10-step trace of 512 rays). A frozen
+# step cannot take the spill's second array over the stack's memory (drjit 1.5.0 crashes on it,
+# and cannot record the alias made inside), so Dr.Jit copies the stack it scatters into once a
+# step: cheap below this size, and above it the unfrozen step (no copy) is taken. Backends whose
+# frozen steps a run has checked against the unfrozen ones (CUDA: not yet, issue 57 item 4).
+# LAYERBVH_FROZEN_STEPS=0 turns them off (every step traced, as before entry 54).
+FROZEN_STACK_BYTES = 16 << 20
+FROZEN_BACKENDS = () if os.environ.get("LAYERBVH_FROZEN_STEPS") == "0" else ("llvm",)
 
 
 def takes_tail(n_active: int, n0: int, steps: int, tail_rays: int, tail_fraction: float) -> bool:
@@ -98,7 +109,13 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
     stack = EntryStack(st_link, st_t, cap_global)
     # The same memory as a second array, which the step kernels write (walk's `spill`) while they
     # read the stack itself: Dr.Jit would copy an array a kernel both reads and writes.
-    spill = EntryStack(_alias(st_link), _alias(st_t), cap_global)
+    # (Not in a frozen trace: frozen_steps. The frozen kernels cannot record the alias, and an
+    # alias alive beside them hides the stack's memory from the recording.)
+    frozen = frozen_steps(lay, n, cap_global)
+    if frozen:
+        dr.eval(st_link, st_t)
+    else:
+        spill = EntryStack(_alias(st_link), _alias(st_t), cap_global)
     finished = lay.treelet_count  # bucket after every treelet: finished rays sort last
     # Per-tree numbers enter the kernels opaque (kernel parameters, not literals), so one
     # compiled kernel serves every tree (issue 39).
@@ -111,6 +128,14 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
     dr.eval(rec)
     peak = 0
     n_active = n0 = dr.width(s.t)
+    stats.frozen = frozen
+    if frozen:  # (the frozen kernels take the state as records, permutation and counters)
+        perm = dr.arange(m.UInt32, n_active)
+        counters = tuple(dr.zeros(m.UInt32, n_active) for _ in work)
+        # (Every input evaluated: a literal input's size is part of a recording, and one whose
+        # width then changes fails the replay's dry run and is recorded again, measured.)
+        dr.eval(perm, *counters, *res.arrays())
+        kw = dict(instanced=instanced, words=words, work=work, any_hit=any_hit, count_work=count_work)
     s = StateRecords.read(m, rec, dr.arange(m.UInt32, n_active), instanced, words)
     for f in work:
         setattr(s, f, dr.zeros(m.UInt32, n_active))
@@ -119,14 +144,31 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         ta = _sync()
         if takes_tail(n_active, n0, stats.steps, tail_rays, tail_fraction):
             # Same nearest-first order as the steps, so the same hits and work counts.
-            out, done = walk(m, lay, rays, s, stack=stack, cap=local_rows(cap_global), bounded=False, any_hit=any_hit,
-                             count_work=count_work, results=res)
-            res.write(out, done)  # (the work counters: the kernel wrote the hits)
+            if frozen:
+                _TAIL(m, lay, rays.rec, rec, perm, counters, res.fields(), tuple(stack), local_rows(cap_global), **kw)
+            else:
+                _tail(m, lay, rays, s, stack, local_rows(cap_global), any_hit, count_work, res)
             dr.eval(*res.arrays())
             stats.time_traverse_s += _sync() - ta
             stats.tail_rays = n_active
             stats.steps += 1
             break
+        if frozen:
+            rec, keys, n_done_w, counters = _STEP(m, lay, rays.rec, rec, perm, counters, res.fields(), tuple(stack),
+                                                  dr.empty(m.UInt32, n_active * words), cap_local, finished_key, **kw)
+            dr.eval(rec, keys, n_done_w, *counters, *res.arrays())
+            n_step = dr.width(keys)
+            n_active -= int(n_done_w[0])
+            tb = _sync()
+            stats.steps += 1
+            stats.time_traverse_s += tb - ta
+            if n_active == 0:
+                break
+            perm = _order(m, keys, n_step, n_active, buckets, finished_key, sort)
+            dr.eval(perm)
+            stats.time_sort_s += _sync() - tb
+            peak = max(peak, n_step * (2 * 4 * words + 8 + 8 * len(work)))
+            continue
         # The step's kernel: it gathers each ray's state record by the last sort's permutation,
         # walks, writes the hits it improved (by slot) as it goes, and at its end, in lane order,
         # every lane's sort key, the record of each ray that goes on and, above that ray's global
@@ -157,11 +199,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         # The order of the next step: by treelet (a stable counting sort; finished rays last, left
         # out), or the rays that go on in their order. Only this permutation is written: the next
         # step gathers each ray's record through it.
-        if sort:
-            perm = dr.detail.block_mkperm(keys, n_step, buckets) if buckets <= (1 << 16) else dr.argsort(keys)
-            perm = dr.gather(m.UInt32, perm, dr.arange(m.UInt32, n_active))  # (lazy: read by the next step)
-        else:
-            perm = dr.compress(keys != finished_key)  # (not ~done: an unevaluated kernel output re-runs it)
+        perm = _order(m, keys, n_step, n_active, buckets, finished_key, sort)  # (lazy: read by the next step)
         s = StateRecords.read(m, rec, perm, instanced, words)
         for f, c in zip(work, counters):
             setattr(s, f, dr.gather(m.UInt32, c, perm))
@@ -175,6 +213,90 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
     stats.work_bytes = (peak + n * cap_global * ENTRY_BYTES + n * 4 * RayRecords.STRIDE
                         + n * 4 * 10)
     return res, stats
+
+
+def _order(m, keys, n_step, n_active: int, buckets: int, finished_key, sort: bool):
+    """The next step's permutation: by treelet (a stable counting sort; finished rays last, left
+    out), or the rays that go on in their order."""
+    if sort:
+        perm = dr.detail.block_mkperm(keys, n_step, buckets) if buckets <= (1 << 16) else dr.argsort(keys)
+        return dr.gather(m.UInt32, perm, dr.arange(m.UInt32, n_active))
+    return dr.compress(keys != finished_key)  # (not ~done: an unevaluated kernel output re-runs it)
+
+
+def frozen_steps(lay: DeviceLayout, n: int, rows: int) -> bool:
+    """Whether a wavefront trace of `n` rays (`rows` entry-stack rows each) on `lay` runs its
+    steps frozen (FROZEN_STACK_BYTES, FROZEN_BACKENDS)."""
+    backend = dr.backend_v(lay.nodes)
+    name = {dr.JitBackend.LLVM: "llvm", dr.JitBackend.CUDA: "cuda"}.get(backend)
+    return name in FROZEN_BACKENDS and n * rows * ENTRY_BYTES <= FROZEN_STACK_BYTES
+
+
+def _tail(m, lay, rays, s, stack, cap, any_hit, count_work, res) -> None:
+    """The tail: the rays left walk to their end, per ray, from their entry stacks."""
+    out, done = walk(m, lay, rays, s, stack=stack, cap=cap, bounded=False, any_hit=any_hit, count_work=count_work,
+                     results=res)
+    res.write(out, done)  # (the work counters: the kernel wrote the hits)
+
+
+def _state(m, rec, perm, counters, instanced, words, work) -> RayState:
+    """The states of the records `perm` with their work counters (gathered with them)."""
+    s = StateRecords.read(m, rec, perm, instanced, words)
+    for f, c in zip(work, counters):
+        setattr(s, f, dr.gather(m.UInt32, c, perm))
+    return s
+
+
+def _frozen_tail(m, lay, rays_rec, rec, perm, counters, res, stack, cap, *, instanced, words, work, any_hit,
+                 count_work) -> None:
+    """`_tail` on the state as records (frozen: _TAIL). `stack`: an EntryStack as a plain tuple
+    (dr.freeze does not look into a NamedTuple for its arrays)."""
+    _tail(m, lay, RayRecords.over(m, rays_rec), _state(m, rec, perm, counters, instanced, words, work),
+          EntryStack(*stack), cap, any_hit, count_work, Results.over(res))
+
+
+def _frozen_step(m, lay, rays_rec, rec, perm, counters, res, stack, rec_out, cap, finished_key, *, instanced, words,
+                 work, any_hit, count_work):
+    """One wavefront step on the state as records (frozen: _STEP): what the unfrozen step does,
+    returning the records of the rays that go on, every lane's sort key, the count of rays that
+    finished (one word) and the work counters. `stack` as in _frozen_tail; the step spills into
+    the stack itself (see FROZEN_STACK_BYTES). `rec_out`: the records' array, allocated by the
+    caller (the step's lanes x words: no allocation inside a frozen function may depend on its
+    call's widths, drjit 1.5.0's dr.freeze replays it at the recorded size)."""
+    res, stack = Results.over(res), EntryStack(*stack)
+    s = _state(m, rec, perm, counters, instanced, words, work)
+    out, done = walk(m, lay, RayRecords.over(m, rays_rec), s, stack=stack, cap=cap, bounded=True, any_hit=any_hit,
+                     count_work=count_work, results=res, spill=stack)
+    keys = dr.select(done, finished_key, out.treelet)
+    rec_out = StateRecords.write(m, out, ~done, words, into=rec_out)
+    n_done_w = dr.zeros(m.UInt32, 1)
+    dr.scatter_reduce(dr.ReduceOp.Add, n_done_w, m.UInt32(1), m.UInt32(0), done)
+    if count_work:
+        res.write(out, done)
+    return rec_out, keys, n_done_w, tuple(getattr(out, f) for f in work)
+
+
+# drjit warns on stderr once a frozen function has been recorded this often; ours are recorded
+# again wherever a batch's shape is new (a render's bounces: measured up to hundreds of times in
+# one test), which is expected, not a fault a user could act on.
+_NO_WARNING = 1 << 30
+# Recorded per tree shape and batch configuration (a few per trace: the first step's widths
+# differ from the later ones'); the LRU bound keeps a session over many scenes from holding them all.
+def _configuration(m, lay, *args, **kw) -> tuple:
+    """What a frozen kernel's code depends on besides its arrays (the plain-Python arguments and
+    the layout's shape), as one string: dr.freeze's key (state_fn). drjit 1.5.0's traversal of
+    the arguments visits each Python object once by identity, and True, False and small ints are
+    shared objects: measured, a call that changed only `any_hit` matched the other query's
+    recording and replayed its kernels (wrong closest hits: tests/engine/test_engine_frozen.py).
+    A string built here is a new object every call, compared by value."""
+    plain = [repr(a) for a in args if isinstance(a, (bool, int, float, str))]
+    plain += [repr(a) for a in args if isinstance(a, tuple) and all(isinstance(x, (bool, int, str)) for x in a)]
+    return (f"{lay.depth}/{lay.height}/{lay.treelet_count}/{lay.branching}/{lay.far}/{lay.instances is not None}/"
+            + "/".join(plain) + "/" + "/".join(f"{k}={v!r}" for k, v in sorted(kw.items())),)
+
+
+_STEP = dr.freeze(_frozen_step, limit=32, warn_after=_NO_WARNING, state_fn=_configuration)
+_TAIL = dr.freeze(_frozen_tail, limit=32, warn_after=_NO_WARNING, state_fn=_configuration)
 
 
 def _alias(a):

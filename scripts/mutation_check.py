@@ -206,6 +206,24 @@ MUTATIONS = (
              'new = target[len("docs/"):] if target.startswith("docs/") else TOP.get(target, target)',
              'new = target',
              ("tests/tools/test_docs.py::test_the_site_builds_strict_with_every_page_and_the_cli",)),
+    Mutation("frozen_step_allocates", "a frozen wavefront step allocates its state records itself (replayed at "
+             "the size it was recorded at, whatever the step's lanes)",
+             "layerbvh/wavefront.py",
+             "dr.empty(m.UInt32, n_active * words), cap_local",
+             "None, cap_local",
+             ("tests/engine/test_engine_frozen.py::test_frozen_steps_return_the_unfrozen_hits_and_work_at_every_width",)),
+    Mutation("frozen_step_one_recording", "the frozen step keeps one recording, so every other batch shape traces "
+             "the walk again",
+             "layerbvh/wavefront.py",
+             "_STEP = dr.freeze(_frozen_step, limit=32, warn_after=_NO_WARNING, state_fn=_configuration)",
+             "_STEP = dr.freeze(_frozen_step, limit=1, warn_after=_NO_WARNING, state_fn=_configuration)",
+             ("tests/engine/test_engine_frozen.py::test_frozen_steps_return_the_unfrozen_hits_and_work_at_every_width",)),
+    Mutation("frozen_key_left_to_drjit", "the frozen step's key is left to dr.freeze's own traversal, which misses "
+             "a changed any_hit (shared Python objects are visited once)",
+             "layerbvh/wavefront.py",
+             'return (f"{lay.depth}/{lay.height}/',
+             'return ("",) or (f"{lay.depth}/{lay.height}/',
+             ("tests/engine/test_engine_frozen.py::test_frozen_steps_return_the_unfrozen_hits_and_work_at_every_width",)),
     Mutation("early_verdict_uncounted_pixels", "the verdict's early 'differs' counts no independent pixel tests in "
              "(its thresholds laxer than the whole family's)",
              "plugin/ab/hypotheses.py",
@@ -666,7 +684,10 @@ def crash_site(rc: int | None, output: str, tests) -> str | None:
     # without a result is the test that was running.
     started = re.findall(r"^(\S+::\S+) (?!PASSED|FAILED|SKIPPED|ERROR|XFAIL|XPASS)", output, re.M)
     running = started[-1] if started else None
-    return next((t for t in tests if running is not None and running.endswith(t)), None)
+    if running is None:
+        return None
+    # (A listed test without parameters names all its parametrized cases.)
+    return next((t for t in tests if running.endswith(t) or running.split("[")[0].endswith(t)), None)
 
 
 def first_failure(output: str, width: int = 90) -> str:
