@@ -224,6 +224,18 @@ MUTATIONS = (
              'return (f"{lay.depth}/{lay.height}/',
              'return ("",) or (f"{lay.depth}/{lay.height}/',
              ("tests/engine/test_engine_frozen.py::test_frozen_steps_return_the_unfrozen_hits_and_work_at_every_width",)),
+    Mutation("forward_clears_interior", "the wavefront loop's forward push clears interior gradients (the "
+             "texture's texel-derived array reaches the texels at the first vertex only)",
+             "plugin/runtime/estimators/replay.py",
+             "flags = dr.ADFlag.Default if megakernel else dr.ADFlag.ClearEdges",
+             "flags = dr.ADFlag.Default if megakernel else dr.ADFlag.ClearEdges | dr.ADFlag.ClearInterior",
+             ("tests/runtime/test_prb.py::test_a_textured_area_emitter_differentiates_as_stock_in_the_wavefront_loop",)),
+    Mutation("backward_clears_edges", "the wavefront loop's backward push clears the edges it crosses (the "
+             "texels' edge to the texture is gone after the first vertex)",
+             "plugin/runtime/estimators/replay.py",
+             "flags=dr.ADFlag.Default if megakernel else dr.ADFlag.ClearVertices)",
+             "flags=dr.ADFlag.Default)",
+             ("tests/runtime/test_prb.py::test_a_textured_area_emitter_differentiates_as_stock_in_the_wavefront_loop",)),
     Mutation("early_verdict_uncounted_pixels", "the verdict's early 'differs' counts no independent pixel tests in "
              "(its thresholds laxer than the whole family's)",
              "plugin/ab/hypotheses.py",

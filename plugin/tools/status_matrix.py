@@ -68,10 +68,12 @@ ROWS = (
                                                           R + "test_ptracer.py::test_ptracer_statistical_step_catches_a_2_percent_albedo_change"))),
     Row("prb",
         Cell("same seed (primal)", (R + "test_prb.py::test_primal_same_seed_as_stock[prb-cbox-layer_sorted]",)),
-        derivatives=Cell("forward and backward, same seed: reflectance, radiance, vertex positions, GGX alpha; paired test over render pairs",
+        derivatives=Cell("forward and backward, same seed: reflectance, radiance, vertex positions, GGX alpha, "
+                         "a textured area emitter's texels; paired test over render pairs",
                          (R + "test_prb.py::test_gradients_same_seed_as_stock[prb-cbox-layer_sorted]",
                           R + "test_prb.py::test_gradients_same_seed_as_stock[prb-bunny_box-per_ray]",
                           R + "test_prb.py::test_gradients_same_seed_as_stock[prb-paper_mix-per_ray]",
+                          R + "test_prb.py::test_a_textured_area_emitter_differentiates_as_stock_in_the_wavefront_loop",
                           R + "test_prb.py::test_gradient_statistical_step_and_its_negative_control[LeftWallBSDF.brdf_0.reflectance.value-light]")),
         polarized=Cell("same seed", (R + "test_polarized.py::test_our_estimators_equal_stock_in_the_polarized_variants[prb-layer_sorted]",))),
     Row("prb_basic",

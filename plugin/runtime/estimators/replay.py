@@ -80,12 +80,19 @@ def propagate(mode, dL, Lo, active, megakernel: bool):
     Forward in the wavefront loop keeps the parameters' gradients: Dr.Jit's default clears them
     once pushed, which in a symbolic loop (stock's, our megakernel) happens once, while the body
     is recorded, but in a Python loop after the first vertex, so every later vertex would push
-    nothing (measured: 80% of a Cornell box's derivative pixels wrong)."""
+    nothing (measured: 80% of a Cornell box's derivative pixels wrong). It keeps interior
+    gradients too (ClearEdges only), and backward keeps the edges it crosses (ClearVertices):
+    a parameter the scene derives an array from when it updates (a bitmap's texels -> the
+    texture that lookups read) reaches it through an edge outside the render's isolate_grad
+    scope, which a vertex's push crossed and cleared, so later vertices reached nothing (a
+    textured area emitter: forward 12.26 against stock's 16.19; test_prb.py's textured test).
+    Each vertex's own edges are new, so nothing is pushed twice."""
     if dr.flag(dr.JitFlag.VCallRecord) and not dr.grad_enabled(Lo):
         raise ValueError("the contribution of a replayed path is attached to no scene parameter: call "
                          "dr.enable_grad on the parameter (and params.update()) before differentiating")
     if mode == dr.ADMode.Backward:
-        dr.backward_from(dr.select(active, dL * Lo, 0))
+        dr.backward_from(dr.select(active, dL * Lo, 0),
+                         flags=dr.ADFlag.Default if megakernel else dr.ADFlag.ClearVertices)
         return dL
-    flags = dr.ADFlag.Default if megakernel else dr.ADFlag.ClearEdges | dr.ADFlag.ClearInterior
+    flags = dr.ADFlag.Default if megakernel else dr.ADFlag.ClearEdges
     return dr.select(active, dL + dr.forward_to(Lo, flags=flags), dL)
