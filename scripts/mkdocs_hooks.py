@@ -1,5 +1,6 @@
 """MkDocs hooks (mkdocs.yml): the site is docs/ plus the top-level pages (README as its home,
-BENCHMARKS, PERFORMANCE, STABILITY) and a CLI reference generated from the argparse parser, with
+BENCHMARKS, PERFORMANCE, STABILITY), a CLI reference generated from the argparse parser and the
+report.json reference from its schema (plugin/ab/report_schema.py), with
 the links that work on GitHub rewritten to where the pages lie in the site.
 
 On GitHub, README.md links `docs/guide.md` and docs/guide.md links `../README.md`; in the site
@@ -18,6 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 TOP = {"README.md": "index.md", "BENCHMARKS.md": "BENCHMARKS.md", "PERFORMANCE.md": "PERFORMANCE.md",
        "STABILITY.md": "STABILITY.md"}
 CLI_PAGE = "cli.md"
+REPORT_PAGE = "report_json.md"
 _LINK = re.compile(r"\]\(([^)\s#]*)(#[^)\s]*)?\)")
 
 
@@ -38,12 +40,14 @@ def on_files(files, config):
     for src, dest in TOP.items():
         files.append(File.generated(config, dest, content=(ROOT / src).read_text()))
     files.append(File.generated(config, CLI_PAGE, content=cli_reference()))
+    from layerbvh_mitsuba.ab import report_schema
+    files.append(File.generated(config, REPORT_PAGE, content=report_schema.markdown()))
     return files
 
 
 def on_page_markdown(markdown, page, config, files):
     uri = page.file.src_uri
-    top_level = page.file.generated_by is not None and uri in TOP.values() and uri != CLI_PAGE
+    top_level = page.file.generated_by is not None and uri in TOP.values()
     depth = uri.count("/")
 
     def move(m):

@@ -236,6 +236,12 @@ MUTATIONS = (
              "flags=dr.ADFlag.Default if megakernel else dr.ADFlag.ClearVertices)",
              "flags=dr.ADFlag.Default)",
              ("tests/runtime/test_prb.py::test_a_textured_area_emitter_differentiates_as_stock_in_the_wavefront_loop",)),
+    Mutation("report_field_renamed", "report.json calls the film size `res`: a user's script reading the "
+             "documented `resolution` breaks",
+             "plugin/ab/compare.py",
+             '"resolution": list(self.resolution), "seed": s.seed,',
+             '"res": list(self.resolution), "seed": s.seed,',
+             ("tests/tools/test_cli.py::test_compare_writes_every_file",)),
     Mutation("early_verdict_uncounted_pixels", "the verdict's early 'differs' counts no independent pixel tests in "
              "(its thresholds laxer than the whole family's)",
              "plugin/ab/hypotheses.py",

@@ -11,7 +11,7 @@ import pytest
 
 import layerbvh_mitsuba  # noqa: F401  (registers the integrators)
 from layerbvh_mitsuba import testing
-from layerbvh_mitsuba.ab import gradient, metrics
+from layerbvh_mitsuba.ab import gradient, metrics, report_schema
 from layerbvh_mitsuba.ab.render import UserError
 from layerbvh_mitsuba.ab.scene_integrator import path_settings
 
@@ -190,6 +190,7 @@ def test_compare_grad_end_to_end(scene_as, tmp_path):
     assert main(["compare", str(path), "--res", "16", "16", "--spp", "4", "--grad", key, "--out", str(out),
                  "--no-progress"]) == 0
     rep = json.loads((out / "report.json").read_text())
+    assert report_schema.validate(rep) == []
     assert rep["gradient"]["key"] == key and rep["gradient"]["label"] == metrics.SAME_PATHS
     assert len(rep["gradient"]["backward"]["ours"]) == 3
     assert (out / "ours_grad.exr").is_file() and (out / "stock_grad.png").is_file()

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from layerbvh_mitsuba.ab.scene_integrator import integrator_name
+from layerbvh_mitsuba.ab import report_schema
 from layerbvh_mitsuba.cli import main
 
 SCENES = Path(__file__).resolve().parents[2] / "scenes"
@@ -26,6 +27,7 @@ def test_compare_writes_every_file(tmp_path, capsys):
     for f in ("stock.exr", "ours.exr", "stock.png", "ours.png", "flip.png", "report.json", "index.html"):
         assert (out / f).stat().st_size > 0, f
     rep = json.loads((out / "report.json").read_text())
+    assert report_schema.validate(rep) == []  # (every documented field, of its type: docs' report.json page)
     assert rep["spp"] == 4 and rep["resolution"] == [24, 16] and rep["seed"] == 3
     assert rep["scene"].endswith("sphere_box.xml")
     for k in ("rmse", "rel_mse", "flip_mean", "delta_e2000_mean", "delta_e2000_p95", "max_abs", "frac_pixels_over_1e-3"):

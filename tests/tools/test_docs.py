@@ -74,6 +74,7 @@ def test_the_site_builds_strict_with_every_page_and_the_cli(tmp_path):
     assert 'href="guide/"' in home and 'href="BENCHMARKS/"' in home  # (the README's links, moved)
     cli = (site / "cli" / "index.html").read_text()
     assert "layerbvh compare" in cli and "--grad" in cli
+    assert "verdict.label" in (site / "report_json" / "index.html").read_text()
 
 
 def test_a_broken_site_link_fails_the_build(tmp_path):

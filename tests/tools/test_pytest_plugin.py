@@ -5,6 +5,7 @@ import json
 
 import pytest
 
+from layerbvh_mitsuba.ab import report_schema
 from layerbvh_mitsuba.repo import SCENES
 
 TESTS = f'''
@@ -51,7 +52,8 @@ def test_checks_pages_summary_and_cache(project):
     page_dir = (out / failed["page"]).parent
     for f in ("stock.exr", "ours.exr", "report.json", "z_fail.png"):
         assert (page_dir / f).is_file(), f
-    assert json.loads((page_dir / "report.json").read_text())["verdict"]["label"] == "differs beyond noise"
+    rep = json.loads((page_dir / "report.json").read_text())
+    assert rep["verdict"]["label"] == "differs beyond noise" and report_schema.validate(rep) == []
     index = (out / "index.html").read_text()
     assert "2 passed, 1 failed" in index and failed["page"] in index
     # Stock was rendered once per (scene, settings): test_other_depth found test_same's render.
