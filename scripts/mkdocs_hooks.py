@@ -36,12 +36,28 @@ def cli_reference() -> str:
     return "\n".join(out)
 
 
+def _integrator_pages() -> dict:
+    from layerbvh_mitsuba.tools import status_matrix
+    return status_matrix.integrator_pages()
+
+
+def on_config(config):
+    """The Integrators section of the nav: one generated page per status-matrix row."""
+    pages = [{uri.split("/")[-1][:-3]: uri} for uri in _integrator_pages()]
+    nav = config["nav"]
+    at = next((i for i, item in enumerate(nav) if "Verification" in item), len(nav))
+    nav.insert(at, {"Integrators": pages})
+    return config
+
+
 def on_files(files, config):
     for src, dest in TOP.items():
         files.append(File.generated(config, dest, content=(ROOT / src).read_text()))
     files.append(File.generated(config, CLI_PAGE, content=cli_reference()))
     from layerbvh_mitsuba.ab import report_schema
     files.append(File.generated(config, REPORT_PAGE, content=report_schema.markdown()))
+    for uri, text in _integrator_pages().items():
+        files.append(File.generated(config, uri, content=text))
     return files
 
 

@@ -242,6 +242,12 @@ MUTATIONS = (
              '"resolution": list(self.resolution), "seed": s.seed,',
              '"res": list(self.resolution), "seed": s.seed,',
              ("tests/tools/test_cli.py::test_compare_writes_every_file",)),
+    Mutation("integrator_page_without_algorithm", "an integrator's documentation page leaves out its estimator's "
+             "docstring (the algorithm and its draw order)",
+             "plugin/tools/status_matrix.py",
+             '_rst_to_md(est.__doc__ or ""), ""]',
+             '""]',
+             ("tests/tools/test_status_matrix.py::test_every_mirrored_integrator_has_its_page",)),
     Mutation("early_verdict_uncounted_pixels", "the verdict's early 'differs' counts no independent pixel tests in "
              "(its thresholds laxer than the whole family's)",
              "plugin/ab/hypotheses.py",

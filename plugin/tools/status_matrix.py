@@ -2,9 +2,11 @@
 from __future__ import annotations
 
 import argparse
+import inspect
 import subprocess
 import sys
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from layerbvh_mitsuba import atomic
 from layerbvh_mitsuba.repo import ROOT
@@ -116,6 +118,38 @@ def markdown(rows=ROWS) -> str:
     for row in rows:
         lines.append(f"| `{row.integrator}` | " + " | ".join(_cell(getattr(row, key)) for key, _ in COLUMNS) + " |")
     return "\n".join(lines)
+
+
+def _rst_to_md(text: str) -> str:
+    """A docstring's reStructuredText literals (``x``) as markdown's (`x`), its lines unindented."""
+    return inspect.cleandoc(text).replace("``", "`")
+
+
+def integrator_pages(rows=ROWS) -> dict[str, str]:
+    """One documentation page per row, {"integrators/<name>.md": markdown}: the estimator that
+    stands in for stock's (its docstring: the algorithm and its sampler's draw order; its source
+    file), then the row's cells with the tests behind each (the site's Integrators section)."""
+    from layerbvh_mitsuba.runtime.registry import PLUGINS, STANDS_IN_FOR  # (here: it imports Mitsuba, the matrix's checks do not)
+    pages = {}
+    for row in rows:
+        names = [n.strip() for n in row.integrator.split(",")]
+        out = [f"# `{row.integrator}`", ""]
+        for name in names:
+            plugin = STANDS_IN_FOR.get(name)
+            if plugin is None:
+                out += [f"`{name}` is a wrapper of stock Mitsuba's, run around ours (we mirror what it wraps).", ""]
+                continue
+            est = PLUGINS[plugin][1]
+            src = Path(inspect.getsourcefile(est)).resolve().relative_to(ROOT)
+            out += [f"Ours: `{plugin}` (`{est.__name__}`, `{src}`), standing in for stock `{name}`.", "",
+                    _rst_to_md(est.__doc__ or ""), ""]
+        out += ["## What the suite compares with stock", "", "| | claim | tests |", "|---|---|---|"]
+        for key, title in COLUMNS:
+            c = getattr(row, key)
+            tests = "<br>".join(f"`{n}`" for n in c.nodes) or "–"
+            out.append(f"| {title} | {c.text} | {tests} |")
+        pages[f"integrators/{names[0]}.md"] = "\n".join(out) + "\n"
+    return pages
 
 
 def missing_nodes(rows=ROWS) -> list[str]:

@@ -75,6 +75,8 @@ def test_the_site_builds_strict_with_every_page_and_the_cli(tmp_path):
     cli = (site / "cli" / "index.html").read_text()
     assert "layerbvh compare" in cli and "--grad" in cli
     assert "verdict.label" in (site / "report_json" / "index.html").read_text()
+    prb = (site / "integrators" / "prb" / "index.html").read_text()
+    assert "layerbvh_prb" in prb and "test_prb.py::test_a_textured_area_emitter" in prb
 
 
 def test_a_broken_site_link_fails_the_build(tmp_path):

@@ -26,3 +26,15 @@ def test_the_readme_holds_the_generated_matrix():
         "README's status matrix is stale: run .venv/bin/python scripts/status_matrix.py --readme"
     for row in sm.ROWS:  # one row per mirrored integrator
         assert f"| `{row.integrator}` |" in text
+
+
+def test_every_mirrored_integrator_has_its_page():
+    """The site's Integrators section: a page per integrator we stand in for, holding its
+    estimator's docstring (the algorithm and draw order) and the tests behind each claim."""
+    from layerbvh_mitsuba.runtime.registry import PLUGINS, STANDS_IN_FOR
+    pages = sm.integrator_pages()
+    for stock, ours in STANDS_IN_FOR.items():
+        page = next((text for text in pages.values() if f"standing in for stock `{stock}`" in text), None)
+        assert page is not None, stock
+        first_line = PLUGINS[ours][1].__doc__.strip().splitlines()[0].replace("``", "`")
+        assert first_line in page and "## What the suite compares with stock" in page, stock
