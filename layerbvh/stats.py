@@ -5,6 +5,24 @@ from dataclasses import asdict, dataclass, field
 
 
 @dataclass
+class StepTime:
+    """One wavefront step's host-timed split (issue 57 item 4: on the H200 the host's share per
+    step outweighed the kernels). `trace_s`: Python building the step (tracing the walk, or a
+    frozen step's replay, which launches as it goes); `kernel_s`: from there until its kernels
+    finished and the finished count was read back; `sort_s`: the next step's permutation."""
+
+    rays: int
+    trace_s: float
+    kernel_s: float
+    sort_s: float
+    tail: bool = False  # the per-ray kernel that finished the rays left
+
+    def as_dict(self) -> dict:
+        return {"rays": self.rays, "trace_s": self.trace_s, "kernel_s": self.kernel_s, "sort_s": self.sort_s,
+                "tail": self.tail}
+
+
+@dataclass
 class TraceStats:
     """Statistics of one trace/occluded call.
 
@@ -37,11 +55,14 @@ class TraceStats:
     tail_rays: int = 0  # rays finished by one per-ray kernel after the last sorted step
     batches: int = 1  # ray batches traced one after another (LayerBVH.batch_rays bounds memory)
     frozen: bool = False  # the wavefront steps replayed frozen kernels (wavefront.FROZEN_STACK_BYTES)
+    step_times: list = field(default_factory=list)  # [StepTime] per step, in order (the tail last)
 
     def absorb(self, other: "TraceStats") -> None:
         """Add the figures of one more ray batch traced with the same mode."""
         self.steps += other.steps
         self.active_per_step += other.active_per_step
+        self.step_times += other.step_times
+        self.frozen = self.frozen or other.frozen
         for name in ("time_sort_s", "time_traverse_s", "time_other_s"):
             setattr(self, name, getattr(self, name) + getattr(other, name))
         self.tail_rays += other.tail_rays

@@ -9,7 +9,7 @@ import drjit as dr
 from .inputs import RayBatch
 from .layout import DeviceLayout, treelet_levels
 from .state import DirectRays, EntryStack, RayRecords, RayState, Results, SlotRays, StateRecords
-from .stats import TraceStats
+from .stats import StepTime, TraceStats
 from .walk import walk
 
 MODES = ("per_ray", "layer_sorted", "layer_unsorted")
@@ -33,9 +33,12 @@ TAIL_STEPS = 32
 # and cannot record the alias made inside), so Dr.Jit copies the stack it scatters into once a
 # step: cheap below this size, and above it the unfrozen step (no copy) is taken. Backends whose
 # frozen steps a run has checked against the unfrozen ones (CUDA: not yet, issue 57 item 4).
-# LAYERBVH_FROZEN_STEPS=0 turns them off (every step traced, as before entry 54).
+# Off unless LAYERBVH_FROZEN_STEPS=1: one run of the suite with them on aborted inside a frozen
+# step's recording (an instanced layout, after hundreds of recordings in that process; not
+# reproduced alone, PERFORMANCE.md entry 54), and an abort in a user's render is worse than the
+# time they save. tests/engine/test_engine_frozen.py runs them on, against the unfrozen steps.
 FROZEN_STACK_BYTES = 16 << 20
-FROZEN_BACKENDS = () if os.environ.get("LAYERBVH_FROZEN_STEPS") == "0" else ("llvm",)
+FROZEN_BACKENDS = ("llvm",) if os.environ.get("LAYERBVH_FROZEN_STEPS") == "1" else ()
 
 
 def takes_tail(n_active: int, n0: int, steps: int, tail_rays: int, tail_fraction: float) -> bool:
@@ -148,25 +151,33 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
                 _TAIL(m, lay, rays.rec, rec, perm, counters, res.fields(), tuple(stack), local_rows(cap_global), **kw)
             else:
                 _tail(m, lay, rays, s, stack, local_rows(cap_global), any_hit, count_work, res)
+            traced = time.perf_counter()
             dr.eval(*res.arrays())
-            stats.time_traverse_s += _sync() - ta
+            tb = _sync()
+            stats.time_traverse_s += tb - ta
+            stats.step_times.append(StepTime(n_active, traced - ta, tb - traced, 0.0, tail=True))
             stats.tail_rays = n_active
             stats.steps += 1
             break
         if frozen:
             rec, keys, n_done_w, counters = _STEP(m, lay, rays.rec, rec, perm, counters, res.fields(), tuple(stack),
                                                   dr.empty(m.UInt32, n_active * words), cap_local, finished_key, **kw)
+            traced = time.perf_counter()  # (a frozen step's replay launches its kernels as it goes)
             dr.eval(rec, keys, n_done_w, *counters, *res.arrays())
             n_step = dr.width(keys)
             n_active -= int(n_done_w[0])
             tb = _sync()
             stats.steps += 1
             stats.time_traverse_s += tb - ta
+            te = tb
+            if n_active > 0:
+                perm = _order(m, keys, n_step, n_active, buckets, finished_key, sort)
+                dr.eval(perm)
+                te = _sync()
+                stats.time_sort_s += te - tb
+            stats.step_times.append(StepTime(n_step, traced - ta, tb - traced, te - tb))
             if n_active == 0:
                 break
-            perm = _order(m, keys, n_step, n_active, buckets, finished_key, sort)
-            dr.eval(perm)
-            stats.time_sort_s += _sync() - tb
             peak = max(peak, n_step * (2 * 4 * words + 8 + 8 * len(work)))
             continue
         # The step's kernel: it gathers each ray's state record by the last sort's permutation,
@@ -186,6 +197,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         dr.scatter_reduce(dr.ReduceOp.Add, n_done_w, m.UInt32(1), m.UInt32(0), done)
         if count_work:
             res.write(out, done)
+        traced = time.perf_counter()  # the step traced in Python, nothing launched yet
         dr.eval(rec, keys, n_done_w, *counters, *res.arrays())
         del done, out  # (unevaluated, `done` would hold the step's graph, and with it the arrays it
         # reads, alive into the next step)
@@ -195,6 +207,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         if n_active == 0:
             stats.steps += 1
             stats.time_traverse_s += tb - ta
+            stats.step_times.append(StepTime(n_step, traced - ta, tb - traced, 0.0))
             break
         # The order of the next step: by treelet (a stable counting sort; finished rays last, left
         # out), or the rays that go on in their order. Only this permutation is written: the next
@@ -209,6 +222,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         stats.steps += 1
         stats.time_traverse_s += tb - ta
         stats.time_sort_s += te - tb
+        stats.step_times.append(StepTime(n_step, traced - ta, tb - traced, te - tb))
     # entry stacks, ray records, ray in/out arrays
     stats.work_bytes = (peak + n * cap_global * ENTRY_BYTES + n * 4 * RayRecords.STRIDE
                         + n * 4 * 10)

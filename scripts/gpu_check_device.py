@@ -100,13 +100,25 @@ def _time_kind(bvh, o, d, tmax, any_hit: bool, runs: int, want=None, rows: dict 
     med = {mode: statistics.median(t) for mode, t in times.items()}
     r = {"rays": len(o), "seconds": med, "measured_sorted_over_per_ray": med["per_ray"] / med["layer_sorted"],
          "modes_disagree": int(np.count_nonzero(got["per_ray"] != got["layer_sorted"])),
-         "split": {mode: {"steps": st.steps, "traverse_s": st.time_traverse_s, "sort_s": st.time_sort_s} for mode, st in last.items()}}
+         "split": {mode: {"steps": st.steps, "traverse_s": st.time_traverse_s, "sort_s": st.time_sort_s,
+                          "frozen": st.frozen, "step_times": [t.as_dict() for t in st.step_times]}
+                   for mode, st in last.items()}}
     if rows is not None:
         pr, so = rows["per_ray"], rows["layer_sorted"]
         r.update(model_dram_per_ray_over_sorted=pr["dram_bytes_per_ray"] / so["dram_bytes_per_ray"],
                  model_total_per_ray_over_sorted=pr["total_dram_bytes_per_ray"] / so["total_dram_bytes_per_ray"],
                  hits_differing_from_replay=bad)
     return r
+
+
+def print_steps(split: dict) -> None:
+    """Each wavefront step's host-timed split (layerbvh.stats.StepTime; issue 57 item 4): the rays
+    it walked, Python building it (tracing; a frozen step's replay), its kernels until the
+    finished count came back, and the next step's sort."""
+    for i, t in enumerate(split.get("step_times", [])):
+        print(f"{'':17} step {i + 1}{' (tail)' if t['tail'] else ''}: {t['rays']:,} rays; trace "
+              f"{t['trace_s'] * 1e3:.2f} ms, kernels {t['kernel_s'] * 1e3:.2f} ms, sort {t['sort_s'] * 1e3:.2f} ms",
+              flush=True)
 
 
 def _time_soup(configs, args) -> list[dict]:
@@ -134,6 +146,7 @@ def _time_soup(configs, args) -> list[dict]:
                 print(f"{'':15} sorted: {sp['steps']} steps; kernels {sp['traverse_s'] * 1e3:.2f} ms, "
                       f"sort {sp['sort_s'] * 1e3:.2f} ms; per_ray "
                       f"{r['split']['per_ray']['traverse_s'] * 1e3:.2f} ms", flush=True)
+                print_steps(sp)
     return out
 
 

@@ -1,4 +1,4 @@
-"""Frozen wavefront steps (wavefront.FROZEN_STACK_BYTES: dr.freeze replays the step and tail kernels) return what the unfrozen steps return, at every width they are replayed at, and are replayed, not recorded again."""
+"""Frozen wavefront steps (wavefront.FROZEN_STACK_BYTES: dr.freeze replays the step and tail kernels; opt-in, LAYERBVH_FROZEN_STEPS=1, on here) return what the unfrozen steps return, at every width they are replayed at, and are replayed, not recorded again."""
 from __future__ import annotations
 
 import numpy as np
@@ -52,10 +52,29 @@ def test_frozen_steps_return_the_unfrozen_hits_and_work_at_every_width(scaled, m
     assert recordings[2] == recordings[1], recordings
 
 
-def test_large_traces_are_not_frozen(scaled):
+def test_large_traces_are_not_frozen(scaled, monkeypatch):
     """Above FROZEN_STACK_BYTES a step would copy the whole entry stack (it spills into the array
     it reads): the unfrozen step, with its alias and no copy, is taken there."""
     tree = scaled[1]
+    monkeypatch.setattr(wavefront, "FROZEN_BACKENDS", ("llvm",))
     rows = wavefront.stack_rows(tree.device)
     n = wavefront.FROZEN_STACK_BYTES // (rows * wavefront.ENTRY_BYTES) + 1
     assert not wavefront.frozen_steps(tree.device, n, rows) and wavefront.frozen_steps(tree.device, n - 1, rows)
+
+
+@pytest.mark.parametrize("n", [3_000, 100_000])  # frozen, and too large to freeze
+def test_every_step_has_its_time_split(scaled, n, monkeypatch):
+    """stats.step_times (issue 57 item 4; scripts/gpu_check_device.py prints it): one entry per
+    step in order, the tail last, each with the rays it walked, and their times adding up to the
+    trace's kernel and sort totals."""
+    v, tree = scaled
+    monkeypatch.setattr(wavefront, "FROZEN_BACKENDS", ("llvm",))
+    o, d = meshes.incoherent_rays(v, n, seed=3)
+    st = tree.trace(o, d, mode="layer_sorted").stats
+    assert st.frozen == (n == 3_000)
+    assert len(st.step_times) == st.steps >= 2
+    assert [t.rays for t in st.step_times] == st.active_per_step
+    assert [t.tail for t in st.step_times] == [False] * (st.steps - 1) + [st.tail_rays > 0]
+    assert all(t.trace_s >= 0 and t.kernel_s > 0 and t.sort_s >= 0 for t in st.step_times)
+    assert sum(t.trace_s + t.kernel_s for t in st.step_times) == pytest.approx(st.time_traverse_s, rel=1e-9)
+    assert sum(t.sort_s for t in st.step_times) == pytest.approx(st.time_sort_s, rel=1e-9, abs=1e-12)

@@ -57,3 +57,18 @@ def test_the_committed_gpu_section_is_what_the_report_writes():
     """BENCHMARKS.md's GPU section is generated from docs/bench/gpu_h200, never edited by hand."""
     have = atomic.read_section(ROOT / "BENCHMARKS.md", gpu_report.GPU_SECTION)
     assert have is not None and have == gpu_report.section(gpu_report.DEFAULT_FOLDER).strip()
+
+
+def test_the_device_half_prints_each_steps_split(capsys):
+    """Issue 57 item 4: per step, its rays, tracing, kernels and sort (layerbvh.stats.StepTime), the tail named."""
+    sys.path.insert(0, str(ROOT / "scripts"))
+    try:
+        import gpu_check_device
+    finally:
+        sys.path.pop(0)
+    gpu_check_device.print_steps({"step_times": [
+        {"rays": 1_000_000, "trace_s": 0.004, "kernel_s": 0.0031, "sort_s": 0.0005, "tail": False},
+        {"rays": 2_000, "trace_s": 0.0001, "kernel_s": 0.0002, "sort_s": 0.0, "tail": True}]})
+    out = capsys.readouterr().out.splitlines()
+    assert "step 1: 1,000,000 rays; trace 4.00 ms, kernels 3.10 ms, sort 0.50 ms" in out[0]
+    assert "step 2 (tail): 2,000 rays" in out[1]
