@@ -10,6 +10,7 @@ Nothing is written into the working tree: the top-level pages and the CLI page a
 from __future__ import annotations
 
 import re
+import sys
 from pathlib import Path
 
 from mkdocs.structure.files import File
@@ -36,6 +37,27 @@ def cli_reference() -> str:
     return "\n".join(out)
 
 
+MUTATIONS_PAGE = "mutations.md"
+
+
+def mutation_table() -> str:
+    """The mutation check's table (scripts/mutation_check.py MUTATIONS): each realistic bug, where
+    it is made and the tests that must catch it."""
+    import importlib.util  # (here: the script is loaded by path, not as a package module)
+    spec = importlib.util.spec_from_file_location("mutation_check", ROOT / "scripts" / "mutation_check.py")
+    mc = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mc  # (its dataclasses look their module up there)
+    spec.loader.exec_module(mc)
+    out = ["# The mutation check", "", f"{len(mc.MUTATIONS)} realistic bugs, each made in a copy of the repository "
+           "by `bash scripts/mutation_check.sh` (one at a time; `--only NAME`), and the tests that must catch it. "
+           "Generated from `scripts/mutation_check.py` when the site is built; see [testing](testing.md) for runs.",
+           "", "| mutation | the bug | file | caught by |", "|---|---|---|---|"]
+    for m in mc.MUTATIONS:
+        tests = "<br>".join(f"`{t.removeprefix('tests/')}`" for t in m.tests)
+        out.append(f"| `{m.name}` | {m.what.replace('|', chr(92) + '|')} | `{m.path}` | {tests} |")
+    return "\n".join(out) + "\n"
+
+
 def _integrator_pages() -> dict:
     from layerbvh_mitsuba.tools import status_matrix
     return status_matrix.integrator_pages()
@@ -56,6 +78,7 @@ def on_files(files, config):
     files.append(File.generated(config, CLI_PAGE, content=cli_reference()))
     from layerbvh_mitsuba.ab import report_schema
     files.append(File.generated(config, REPORT_PAGE, content=report_schema.markdown()))
+    files.append(File.generated(config, MUTATIONS_PAGE, content=mutation_table()))
     for uri, text in _integrator_pages().items():
         files.append(File.generated(config, uri, content=text))
     return files

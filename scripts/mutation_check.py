@@ -248,6 +248,11 @@ MUTATIONS = (
              '_rst_to_md(est.__doc__ or ""), ""]',
              '""]',
              ("tests/tools/test_status_matrix.py::test_every_mirrored_integrator_has_its_page",)),
+    Mutation("mutation_page_empty", "the documentation's mutation table lists none of the mutations",
+             "scripts/mkdocs_hooks.py",
+             "    for m in mc.MUTATIONS:\n",
+             "    for m in mc.MUTATIONS[:0]:\n",
+             ("tests/tools/test_docs.py::test_the_site_builds_strict_with_every_page_and_the_cli",)),
     Mutation("early_verdict_uncounted_pixels", "the verdict's early 'differs' counts no independent pixel tests in "
              "(its thresholds laxer than the whole family's)",
              "plugin/ab/hypotheses.py",

@@ -75,6 +75,7 @@ def test_the_site_builds_strict_with_every_page_and_the_cli(tmp_path):
     cli = (site / "cli" / "index.html").read_text()
     assert "layerbvh compare" in cli and "--grad" in cli
     assert "verdict.label" in (site / "report_json" / "index.html").read_text()
+    assert "early_verdict_uncounted_pixels" in (site / "mutations" / "index.html").read_text()
     prb = (site / "integrators" / "prb" / "index.html").read_text()
     assert "layerbvh_prb" in prb and "test_prb.py::test_a_textured_area_emitter" in prb
 
@@ -84,7 +85,8 @@ def test_a_broken_site_link_fails_the_build(tmp_path):
     copy = tmp_path / "repo"
     (copy / "scripts").mkdir(parents=True)
     shutil.copy(ROOT / "mkdocs.yml", copy)
-    shutil.copy(ROOT / "scripts" / "mkdocs_hooks.py", copy / "scripts")
+    for script in ("mkdocs_hooks.py", "mutation_check.py"):  # (the hooks and the table they read)
+        shutil.copy(ROOT / "scripts" / script, copy / "scripts")
     for name in ("README.md", "BENCHMARKS.md", "PERFORMANCE.md", "STABILITY.md"):
         shutil.copy(ROOT / name, copy)
     shutil.copytree(ROOT / "docs", copy / "docs")
