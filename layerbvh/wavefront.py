@@ -132,16 +132,15 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
     peak = 0
     n_active = n0 = dr.width(s.t)
     stats.frozen = frozen
-    if frozen:  # (the frozen kernels take the state as records, permutation and counters)
-        perm = dr.arange(m.UInt32, n_active)
+    # The state between steps: the records, the permutation the next step reads them by, and the
+    # work counters (None: all zero, the first step's).
+    perm, counters = dr.arange(m.UInt32, n_active), None
+    kw = dict(instanced=instanced, words=words, work=work, any_hit=any_hit, count_work=count_work)
+    if frozen:
         counters = tuple(dr.zeros(m.UInt32, n_active) for _ in work)
         # (Every input evaluated: a literal input's size is part of a recording, and one whose
         # width then changes fails the replay's dry run and is recorded again, measured.)
         dr.eval(perm, *counters, *res.arrays())
-        kw = dict(instanced=instanced, words=words, work=work, any_hit=any_hit, count_work=count_work)
-    s = StateRecords.read(m, rec, dr.arange(m.UInt32, n_active), instanced, words)
-    for f in work:
-        setattr(s, f, dr.zeros(m.UInt32, n_active))
     while n_active > 0:
         stats.active_per_step.append(n_active)
         ta = _sync()
@@ -150,7 +149,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
             if frozen:
                 _TAIL(m, lay, rays.rec, rec, perm, counters, res.fields(), tuple(stack), local_rows(cap_global), **kw)
             else:
-                _tail(m, lay, rays, s, stack, local_rows(cap_global), any_hit, count_work, res)
+                _tail(m, lay, rays, rec, perm, counters, res, stack, local_rows(cap_global), **kw)
             traced = time.perf_counter()
             dr.eval(*res.arrays())
             tb = _sync()
@@ -159,69 +158,31 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
             stats.tail_rays = n_active
             stats.steps += 1
             break
-        if frozen:
+        rec_out = dr.empty(m.UInt32, n_active * words)
+        if frozen:  # (a frozen step's replay launches its kernels as it goes)
             rec, keys, n_done_w, counters = _STEP(m, lay, rays.rec, rec, perm, counters, res.fields(), tuple(stack),
-                                                  dr.empty(m.UInt32, n_active * words), cap_local, finished_key, **kw)
-            traced = time.perf_counter()  # (a frozen step's replay launches its kernels as it goes)
-            dr.eval(rec, keys, n_done_w, *counters, *res.arrays())
-            n_step = dr.width(keys)
-            n_active -= int(n_done_w[0])
-            tb = _sync()
-            stats.steps += 1
-            stats.time_traverse_s += tb - ta
-            te = tb
-            if n_active > 0:
-                perm = _order(m, keys, n_step, n_active, buckets, finished_key, sort)
-                dr.eval(perm)
-                te = _sync()
-                stats.time_sort_s += te - tb
-            stats.step_times.append(StepTime(n_step, traced - ta, tb - traced, te - tb))
-            if n_active == 0:
-                break
-            peak = max(peak, n_step * (2 * 4 * words + 8 + 8 * len(work)))
-            continue
-        # The step's kernel: it gathers each ray's state record by the last sort's permutation,
-        # walks, writes the hits it improved (by slot) as it goes, and at its end, in lane order,
-        # every lane's sort key, the record of each ray that goes on and, above that ray's global
-        # stack, the entries it still holds (a finished ray writes no record: on paper_mix most
-        # rays finish in step 1). Nothing else moves between steps but the sort.
-        out, done = walk(m, lay, rays, s, stack=stack, cap=cap_local, bounded=True, any_hit=any_hit,
-                         count_work=count_work, results=res, spill=spill)
-        keys = out.treelet = dr.select(done, finished_key, out.treelet)
-        n_step = dr.width(keys)
-        rec = StateRecords.write(m, out, ~done, words)
-        counters = [getattr(out, f) for f in work]
-        # The rays that finished, counted by the kernel itself (an atomic on one word, not another
-        # pass over the keys).
-        n_done_w = dr.zeros(m.UInt32, 1)
-        dr.scatter_reduce(dr.ReduceOp.Add, n_done_w, m.UInt32(1), m.UInt32(0), done)
-        if count_work:
-            res.write(out, done)
-        traced = time.perf_counter()  # the step traced in Python, nothing launched yet
+                                                  rec_out, cap_local, finished_key, **kw)
+        else:
+            rec, keys, n_done_w, counters = _step(m, lay, rays, rec, perm, counters, res, stack, spill, rec_out,
+                                                  cap_local, finished_key, **kw)
+        traced = time.perf_counter()  # the step traced in Python (unfrozen: nothing launched yet)
         dr.eval(rec, keys, n_done_w, *counters, *res.arrays())
-        del done, out  # (unevaluated, `done` would hold the step's graph, and with it the arrays it
-        # reads, alive into the next step)
-        n_done = int(n_done_w[0])
+        n_step = dr.width(keys)
+        n_active -= int(n_done_w[0])
         tb = _sync()
-        n_active -= n_done
-        if n_active == 0:
-            stats.steps += 1
-            stats.time_traverse_s += tb - ta
-            stats.step_times.append(StepTime(n_step, traced - ta, tb - traced, 0.0))
-            break
-        # The order of the next step: by treelet (a stable counting sort; finished rays last, left
-        # out), or the rays that go on in their order. Only this permutation is written: the next
-        # step gathers each ray's record through it.
-        perm = _order(m, keys, n_step, n_active, buckets, finished_key, sort)  # (lazy: read by the next step)
-        s = StateRecords.read(m, rec, perm, instanced, words)
-        for f, c in zip(work, counters):
-            setattr(s, f, dr.gather(m.UInt32, c, perm))
-        te = _sync()
-        # the records read and those written (both alive during a step), keys, permutation
-        peak = max(peak, n_step * (2 * 4 * words + 8 + 8 * len(work)))
         stats.steps += 1
         stats.time_traverse_s += tb - ta
-        stats.time_sort_s += te - tb
+        te = tb
+        if n_active > 0:
+            # Only the next step's permutation is written: it gathers each ray's record through it
+            # (unfrozen: lazily, inside its kernel).
+            perm = _order(m, keys, n_step, n_active, buckets, finished_key, sort)
+            if frozen:
+                dr.eval(perm)
+            te = _sync()
+            stats.time_sort_s += te - tb
+            # the records read and those written (both alive during a step), keys, permutation
+            peak = max(peak, n_step * (2 * 4 * words + 8 + 8 * len(work)))
         stats.step_times.append(StepTime(n_step, traced - ta, tb - traced, te - tb))
     # entry stacks, ray records, ray in/out arrays
     stats.work_bytes = (peak + n * cap_global * ENTRY_BYTES + n * 4 * RayRecords.STRIDE
@@ -246,41 +207,36 @@ def frozen_steps(lay: DeviceLayout, n: int, rows: int) -> bool:
     return name in FROZEN_BACKENDS and n * rows * ENTRY_BYTES <= FROZEN_STACK_BYTES
 
 
-def _tail(m, lay, rays, s, stack, cap, any_hit, count_work, res) -> None:
+def _state(m, rec, perm, counters, instanced, words, work) -> RayState:
+    """The states of the records `perm` with their work counters (gathered with them; None: the
+    first step's, all zero)."""
+    s = StateRecords.read(m, rec, perm, instanced, words)
+    for i, f in enumerate(work):
+        setattr(s, f, dr.zeros(m.UInt32, dr.width(perm)) if counters is None else dr.gather(m.UInt32, counters[i], perm))
+    return s
+
+
+def _tail(m, lay, rays, rec, perm, counters, res, stack, cap, *, instanced, words, work, any_hit, count_work) -> None:
     """The tail: the rays left walk to their end, per ray, from their entry stacks."""
+    s = _state(m, rec, perm, counters, instanced, words, work)
     out, done = walk(m, lay, rays, s, stack=stack, cap=cap, bounded=False, any_hit=any_hit, count_work=count_work,
                      results=res)
     res.write(out, done)  # (the work counters: the kernel wrote the hits)
 
 
-def _state(m, rec, perm, counters, instanced, words, work) -> RayState:
-    """The states of the records `perm` with their work counters (gathered with them)."""
-    s = StateRecords.read(m, rec, perm, instanced, words)
-    for f, c in zip(work, counters):
-        setattr(s, f, dr.gather(m.UInt32, c, perm))
-    return s
-
-
-def _frozen_tail(m, lay, rays_rec, rec, perm, counters, res, stack, cap, *, instanced, words, work, any_hit,
-                 count_work) -> None:
-    """`_tail` on the state as records (frozen: _TAIL). `stack`: an EntryStack as a plain tuple
-    (dr.freeze does not look into a NamedTuple for its arrays)."""
-    _tail(m, lay, RayRecords.over(m, rays_rec), _state(m, rec, perm, counters, instanced, words, work),
-          EntryStack(*stack), cap, any_hit, count_work, Results.over(res))
-
-
-def _frozen_step(m, lay, rays_rec, rec, perm, counters, res, stack, rec_out, cap, finished_key, *, instanced, words,
-                 work, any_hit, count_work):
-    """One wavefront step on the state as records (frozen: _STEP): what the unfrozen step does,
-    returning the records of the rays that go on, every lane's sort key, the count of rays that
-    finished (one word) and the work counters. `stack` as in _frozen_tail; the step spills into
-    the stack itself (see FROZEN_STACK_BYTES). `rec_out`: the records' array, allocated by the
-    caller (the step's lanes x words: no allocation inside a frozen function may depend on its
-    call's widths, drjit 1.5.0's dr.freeze replays it at the recorded size)."""
-    res, stack = Results.over(res), EntryStack(*stack)
+def _step(m, lay, rays, rec, perm, counters, res, stack, spill, rec_out, cap, finished_key, *, instanced, words, work,
+          any_hit, count_work):
+    """One wavefront step's kernel: it gathers each ray's state record by the last sort's
+    permutation, walks, writes the hits it improved (by slot) as it goes, and at its end, in lane
+    order, every lane's sort key, the record of each ray that goes on (into `rec_out`, the step's
+    lanes x words) and, above that ray's global stack, the entries it still holds (through
+    `spill`; a finished ray writes no record: on paper_mix most rays finish in step 1). Nothing
+    else moves between steps but the sort. Returns the records, the keys, the count of rays that
+    finished (one word, counted by an atomic in the kernel, not another pass over the keys) and
+    the work counters."""
     s = _state(m, rec, perm, counters, instanced, words, work)
-    out, done = walk(m, lay, RayRecords.over(m, rays_rec), s, stack=stack, cap=cap, bounded=True, any_hit=any_hit,
-                     count_work=count_work, results=res, spill=stack)
+    out, done = walk(m, lay, rays, s, stack=stack, cap=cap, bounded=True, any_hit=any_hit, count_work=count_work,
+                     results=res, spill=spill)
     keys = dr.select(done, finished_key, out.treelet)
     rec_out = StateRecords.write(m, out, ~done, words, into=rec_out)
     n_done_w = dr.zeros(m.UInt32, 1)
@@ -288,6 +244,23 @@ def _frozen_step(m, lay, rays_rec, rec, perm, counters, res, stack, rec_out, cap
     if count_work:
         res.write(out, done)
     return rec_out, keys, n_done_w, tuple(getattr(out, f) for f in work)
+
+
+def _frozen_tail(m, lay, rays_rec, rec, perm, counters, res, stack, cap, **kw) -> None:
+    """`_tail` with its arrays as dr.freeze traverses them (frozen: _TAIL): the ray records'
+    array, Results.fields(), and the EntryStack as a plain tuple (dr.freeze does not look into a
+    NamedTuple for its arrays)."""
+    _tail(m, lay, RayRecords.over(m, rays_rec), rec, perm, counters, Results.over(res), EntryStack(*stack), cap, **kw)
+
+
+def _frozen_step(m, lay, rays_rec, rec, perm, counters, res, stack, rec_out, cap, finished_key, **kw):
+    """`_step` as _frozen_tail takes its arrays (frozen: _STEP). It spills into the stack itself:
+    a frozen function cannot take the alias (see FROZEN_STACK_BYTES). `rec_out` comes from the
+    caller because no allocation inside a frozen function may depend on its call's widths
+    (drjit 1.5.0's dr.freeze replays it at the recorded size)."""
+    stack = EntryStack(*stack)
+    return _step(m, lay, RayRecords.over(m, rays_rec), rec, perm, counters, Results.over(res), stack, stack, rec_out,
+                 cap, finished_key, **kw)
 
 
 # drjit warns on stderr once a frozen function has been recorded this often; ours are recorded

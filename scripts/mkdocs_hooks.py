@@ -9,6 +9,7 @@ Nothing is written into the working tree: the top-level pages and the CLI page a
 """
 from __future__ import annotations
 
+import functools
 import re
 import sys
 from pathlib import Path
@@ -58,6 +59,7 @@ def mutation_table() -> str:
     return "\n".join(out) + "\n"
 
 
+@functools.cache  # (the nav and the files both need them: made once per build)
 def _integrator_pages() -> dict:
     from layerbvh_mitsuba.tools import status_matrix
     return status_matrix.integrator_pages()

@@ -209,8 +209,8 @@ MUTATIONS = (
     Mutation("frozen_step_allocates", "a frozen wavefront step allocates its state records itself (replayed at "
              "the size it was recorded at, whatever the step's lanes)",
              "layerbvh/wavefront.py",
-             "dr.empty(m.UInt32, n_active * words), cap_local",
-             "None, cap_local",
+             "rec_out, cap_local, finished_key, **kw)",
+             "None, cap_local, finished_key, **kw)",
              ("tests/engine/test_engine_frozen.py::test_frozen_steps_return_the_unfrozen_hits_and_work_at_every_width",)),
     Mutation("frozen_step_one_recording", "the frozen step keeps one recording, so every other batch shape traces "
              "the walk again",
