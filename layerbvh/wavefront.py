@@ -1,6 +1,8 @@
 """Trace drivers: one kernel per batch (per_ray) and sorted/unsorted wavefront steps over treelets."""
 from __future__ import annotations
 
+import contextlib
+import gc
 import os
 import time
 
@@ -33,10 +35,10 @@ TAIL_STEPS = 32
 # and cannot record the alias made inside), so Dr.Jit copies the stack it scatters into once a
 # step: cheap below this size, and above it the unfrozen step (no copy) is taken. Backends whose
 # frozen steps a run has checked against the unfrozen ones (CUDA: not yet, issue 57 item 4).
-# Off unless LAYERBVH_FROZEN_STEPS=1: one run of the suite with them on aborted inside a frozen
-# step's recording (an instanced layout, after hundreds of recordings in that process; not
-# reproduced alone, PERFORMANCE.md entry 54), and an abort in a user's render is worse than the
-# time they save. tests/engine/test_engine_frozen.py runs them on, against the unfrozen steps.
+# Off unless LAYERBVH_FROZEN_STEPS=1: a run of the suite with them on aborted inside a frozen
+# step's recording. Cause (PERFORMANCE.md entry 55): Python's cycle collector ran there and freed
+# a Mitsuba scene, whose release drjit cannot record; the steps now hold the collector off
+# (_no_collection). tests/engine/test_engine_frozen.py runs them on, against the unfrozen steps.
 FROZEN_STACK_BYTES = 16 << 20
 FROZEN_BACKENDS = ("llvm",) if os.environ.get("LAYERBVH_FROZEN_STEPS") == "1" else ()
 
@@ -147,7 +149,9 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         if takes_tail(n_active, n0, stats.steps, tail_rays, tail_fraction):
             # Same nearest-first order as the steps, so the same hits and work counts.
             if frozen:
-                _TAIL(m, lay, rays.rec, rec, perm, counters, res.fields(), tuple(stack), local_rows(cap_global), **kw)
+                with _no_collection():
+                    _TAIL(m, lay, rays.rec, rec, perm, counters, res.fields(), tuple(stack), local_rows(cap_global),
+                          **kw)
             else:
                 _tail(m, lay, rays, rec, perm, counters, res, stack, local_rows(cap_global), **kw)
             traced = time.perf_counter()
@@ -160,8 +164,9 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
             break
         rec_out = dr.empty(m.UInt32, n_active * words)
         if frozen:  # (a frozen step's replay launches its kernels as it goes)
-            rec, keys, n_done_w, counters = _STEP(m, lay, rays.rec, rec, perm, counters, res.fields(), tuple(stack),
-                                                  rec_out, cap_local, finished_key, **kw)
+            with _no_collection():
+                rec, keys, n_done_w, counters = _STEP(m, lay, rays.rec, rec, perm, counters, res.fields(),
+                                                      tuple(stack), rec_out, cap_local, finished_key, **kw)
         else:
             rec, keys, n_done_w, counters = _step(m, lay, rays, rec, perm, counters, res, stack, spill, rec_out,
                                                   cap_local, finished_key, **kw)
@@ -284,6 +289,22 @@ def _configuration(m, lay, *args, **kw) -> tuple:
 
 _STEP = dr.freeze(_frozen_step, limit=32, warn_after=_NO_WARNING, state_fn=_configuration)
 _TAIL = dr.freeze(_frozen_tail, limit=32, warn_after=_NO_WARNING, state_fn=_configuration)
+
+
+@contextlib.contextmanager
+def _no_collection():
+    """Python's cycle collector off while a frozen step records or replays. Whatever it frees then
+    is freed inside the recording, and an object whose release goes through a host callback (a
+    Mitsuba shapegroup's Embree scene, a DLPack import) aborts the process there: drjit 1.5.0
+    cannot record one ("enqueue_host_func(): this function cannot be recorded", PERFORMANCE.md
+    entry 55). Garbage waits for the next collection after the step."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
 
 
 def _alias(a):

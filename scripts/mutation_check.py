@@ -212,6 +212,19 @@ MUTATIONS = (
              "rec_out, cap_local, finished_key, **kw)",
              "None, cap_local, finished_key, **kw)",
              ("tests/engine/test_engine_frozen.py::test_frozen_steps_return_the_unfrozen_hits_and_work_at_every_width",)),
+    Mutation("frozen_step_collects", "Python's cycle collector may run inside a frozen step's recording (a "
+             "Mitsuba scene freed there aborts the process)",
+             "layerbvh/wavefront.py",
+             "    gc.disable()\n",
+             "    pass\n",
+             ("tests/runtime/test_frozen_recording.py::"
+              "test_a_scene_freed_by_the_cycle_collector_never_lands_in_a_frozen_recording",)),
+    Mutation("children_class_per_call", "scene_geometry._children makes its callback class per call (a reference "
+             "cycle holding the scene's objects until the collector runs)",
+             "plugin/runtime/scene_geometry.py",
+             "    if variant not in _OBJECTS_CALLBACK:",
+             "    if True:",
+             ("tests/runtime/test_frozen_recording.py::test_reading_a_scenes_children_leaves_no_cycle_garbage",)),
     Mutation("frozen_step_one_recording", "the frozen step keeps one recording, so every other batch shape traces "
              "the walk again",
              "layerbvh/wavefront.py",

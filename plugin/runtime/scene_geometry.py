@@ -145,15 +145,34 @@ def describe(shape, index=None) -> str:
 def _children(obj) -> list:
     """(name, object) of the objects a Mitsuba object hands to its traversal callback, in order
     (a shapegroup: its shapes in the order of Mitsuba's shape_index)."""
-    objects = []
-
-    class Objects(mi.TraversalCallback):  # made here: the class exists only once a variant is set
-        def put(self, name, value, flags, cpptype=None):
-            if isinstance(value, mi.Object):
-                objects.append((name, value))
-
-    obj.traverse(Objects())
+    cb = _objects_callback()()
+    obj.traverse(cb)
+    objects, cb.objects = cb.objects, None
     return objects
+
+
+# One callback class per variant, kept: a class made per call is a reference cycle (class ->
+# method -> closure -> class), and the Mitsuba objects its closure held were freed only by
+# Python's cycle collector, at whatever moment it ran. Measured (PERFORMANCE.md entry 55): it ran
+# inside a frozen wavefront step's recording, where a shapegroup freed then (its Embree scene is
+# released through a host callback) aborts the process.
+_OBJECTS_CALLBACK: dict[str, type] = {}
+
+
+def _objects_callback() -> type:
+    """The traversal callback class of the current variant (made once a variant is set)."""
+    variant = mi.variant()
+    if variant not in _OBJECTS_CALLBACK:
+        class Objects(mi.TraversalCallback):
+            def __init__(self):
+                super().__init__()
+                self.objects = []
+
+            def put(self, name, value, flags, cpptype=None):
+                if isinstance(value, mi.Object):
+                    self.objects.append((name, value))
+        _OBJECTS_CALLBACK[variant] = Objects
+    return _OBJECTS_CALLBACK[variant]
 
 
 def sensor_medium(sensor):
