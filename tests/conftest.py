@@ -28,6 +28,26 @@ def procedural():
     return v, f
 
 
+# Dr.Jit keeps the kernels it compiled in $HOME/.drjit (no other setting in drjit 1.5.0). A test
+# that runs a process with a HOME of its own (pytester does, to keep the user's configuration
+# out; others to isolate our own caches) would compile every kernel again there, each run: the
+# warm suite's kernel census found ~17 s of LLVM compiling in pytester's runs alone. Such a HOME
+# gets a link to the suite's kernel cache instead (compiled kernels do not depend on what the
+# tests isolate). Taken here, before any test changes HOME.
+DRJIT_KERNEL_CACHE = Path.home() / ".drjit"
+
+
+@pytest.fixture(scope="session")
+def share_kernel_cache():
+    """share_kernel_cache(home): `home`/.drjit becomes a link to the suite's Dr.Jit kernel cache."""
+    def link(home) -> None:
+        target = Path(home) / ".drjit"
+        if not target.exists() and not target.is_symlink():
+            DRJIT_KERNEL_CACHE.mkdir(exist_ok=True)
+            target.symlink_to(DRJIT_KERNEL_CACHE, target_is_directory=True)
+    return link
+
+
 # The tests running now, kept in the file scripts/test.sh names, which prints them if it has to
 # stop a run that hangs (issue 39). Kept by the controller alone (xdist relays each worker's test
 # starts and ends to it), written then renamed: never read half-written.

@@ -98,11 +98,12 @@ print(json.dumps({"key": tracer.device_key(), "loop": st.loop, "calibration_s": 
 """
 
 
-def test_decisions_kept_across_processes_whatever_the_load_order(tmp_path):
+def test_decisions_kept_across_processes_whatever_the_load_order(tmp_path, share_kernel_cache):
     """A first run times and keeps its decisions; a later run in another process (Mitsuba then
     loads the shapes in another order) finds them under the same key: nothing is timed, and
     the render is the megakernel whenever they all say per_ray."""
     env = {"XDG_CACHE_HOME": str(tmp_path), "PATH": "/usr/bin:/bin", "HOME": str(tmp_path)}
+    share_kernel_cache(tmp_path)  # (our caches isolated, Dr.Jit's compiled kernels shared)
 
     def run():
         r = subprocess.run([sys.executable, "-c", CHILD, str(STAIRCASE)], capture_output=True, text=True,

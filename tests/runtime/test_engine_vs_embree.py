@@ -11,6 +11,7 @@ import pytest
 
 import layerbvh
 from layerbvh import MISS
+from layerbvh.backend import from_numpy
 from layerbvh_mitsuba.ab import embree
 
 ENGINE_TESTS = str(Path(__file__).resolve().parents[1] / "engine")
@@ -75,13 +76,13 @@ def test_dr_jit_arrays_in_and_out(bunny):
     o, d = rays(v, "incoherent", n=4000)
     bvh = layerbvh.build(v, f)
     ref = bvh.trace(o, d)
-    oj = mi.Point3f(*(mi.Float(o[:, c]) for c in range(3)))
-    dj = mi.Vector3f(*(mi.Float(d[:, c]) for c in range(3)))
+    oj = mi.Point3f(*(from_numpy(mi.Float, o[:, c]) for c in range(3)))
+    dj = mi.Vector3f(*(from_numpy(mi.Float, d[:, c]) for c in range(3)))
     h = bvh.trace(oj, dj, mode="layer_sorted")
     assert dr.is_array_v(h.t) and dr.is_array_v(h.prim)
     assert np.array_equal(np.array(h.prim), ref.prim)
     assert np.array_equal(np.array(h.t), ref.t)
-    occ = bvh.occluded(oj, dj, mi.Float(np.full(len(o), 0.1, np.float32))).occluded
+    occ = bvh.occluded(oj, dj, from_numpy(mi.Float, np.full(len(o), 0.1, np.float32))).occluded
     assert np.array_equal(np.array(occ), ref.t < 0.1)
 
 

@@ -27,8 +27,9 @@ def test_marked(layerbvh_result):
 
 
 @pytest.fixture
-def project(pytester, monkeypatch, tmp_path):
+def project(pytester, monkeypatch, tmp_path, share_kernel_cache):
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))  # an empty stock cache
+    share_kernel_cache(pytester.path)  # (pytester's HOME: the compiled kernels, not compiled again)
     pytester.makepyfile(test_user=TESTS)
     return pytester
 
