@@ -225,6 +225,24 @@ MUTATIONS = (
              "    if variant not in _OBJECTS_CALLBACK:",
              "    if True:",
              ("tests/runtime/test_frozen_recording.py::test_reading_a_scenes_children_leaves_no_cycle_garbage",)),
+    Mutation("t_upper_common_stop", "t_upper iterates every element until all have converged (40 tail "
+             "evaluations of the whole array where its elements need about 5)",
+             "plugin/ab/hypotheses.py",
+             "            go = go[~done]\n",
+             "            go = go if not done.all() else go[:0]\n",
+             ("tests/tools/test_hypotheses.py::test_t_quantiles_over_a_whole_grid_of_degrees_of_freedom",)),
+    Mutation("t_upper_step_stop_only", "t_upper stops an element only on a small step (far in the tail the "
+             "rounding keeps the steps large: every such element runs to the cap)",
+             "plugin/ab/hypotheses.py",
+             " | (np.abs(f) <= 1e-12 * q)",
+             "",
+             ("tests/tools/test_hypotheses.py::test_t_quantiles_over_a_whole_grid_of_degrees_of_freedom",)),
+    Mutation("t_upper_small_bracket", "t_upper's bracket tops at 1e4 (at df 1 a Bonferroni share of alpha "
+             "needs t ~ 3e8: the quantile returned is the bracket's top)",
+             "plugin/ab/hypotheses.py",
+             "T_MAX = 1e12 ",
+             "T_MAX = 1e4 ",
+             ("tests/tools/test_hypotheses.py::test_t_quantiles_over_a_whole_grid_of_degrees_of_freedom",)),
     Mutation("frozen_step_one_recording", "the frozen step keeps one recording, so every other batch shape traces "
              "the walk again",
              "layerbvh/wavefront.py",

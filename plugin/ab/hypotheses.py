@@ -98,11 +98,18 @@ def normal_upper(q: float) -> float:
     return 0.5 * (lo + hi)
 
 
+T_MAX = 1e12         # t_upper's bracket
+T_ITERATIONS = 100   # t_upper's cap on Newton/bisection steps (bisection alone: 70 from T_MAX to 1e-9)
+
+
 def t_upper(q: float, df: np.ndarray | float) -> np.ndarray:
     """t with P(T > t) = q (q < 0.5) for Student's t with `df` degrees of freedom, elementwise
     (inf: the normal's): the Cornish-Fisher expansion (Abramowitz & Stegun 26.7.5) as a start,
     then Newton steps on the tail probability, kept inside a bisection bracket (at df near 1 the
-    expansion can start far off). About 8 tail evaluations instead of bisection's 80."""
+    expansion can start far off). About 5 tail evaluations per element instead of bisection's
+    80. Each element stops at its own convergence: over a tile grid's thousands of degrees of
+    freedom, iterating the whole array until all had converged ran it to the cap (40 tail
+    evaluations of every element), and converged elements stepped out of their bracket again."""
     df = np.asarray(df, np.float64)
     z = normal_upper(q)
     out = np.full(df.shape, z)
@@ -113,20 +120,28 @@ def t_upper(q: float, df: np.ndarray | float) -> np.ndarray:
              (3 * z ** 7 + 19 * z ** 5 + 17 * z ** 3 - 15 * z) / 384,
              (79 * z ** 9 + 776 * z ** 7 + 1482 * z ** 5 - 1920 * z ** 3 - 945 * z) / 92160)
         t = z + sum(gi / d ** (i + 1) for i, gi in enumerate(g))
-        lo, hi = np.zeros_like(d), np.full_like(d, 1e4)
-        t = np.clip(t, 1e-6, 1e4 - 1.0)
+        # (The bracket's top: at df 1, P(T > t) ~ 1 / (pi t), so q = 1e-9, a Bonferroni share of
+        # alpha over a large film, needs t ~ 3e8; a top of 1e4 returned 1e4 there.)
+        lo, hi = np.zeros_like(d), np.full_like(d, T_MAX)
+        t = np.clip(t, 1e-6, T_MAX / 2)
         lg = np.frompyfunc(math.lgamma, 1, 1)
         log_c = (lg((d + 1) / 2) - lg(d / 2)).astype(np.float64) - 0.5 * np.log(d * math.pi)
-        for _ in range(40):
-            f = 0.5 * metrics._two_sided_p_student(t, d) - q  # decreasing in t
-            lo, hi = np.where(f > 0, t, lo), np.where(f > 0, hi, t)
-            pdf = np.exp(log_c - (d + 1) / 2 * np.log1p(t * t / d))
+        go = np.arange(d.size)  # the elements not converged yet
+        for _ in range(T_ITERATIONS):
+            tg, dg = t[go], d[go]
+            f = 0.5 * metrics._two_sided_p_student(tg, dg) - q  # decreasing in t
+            lo[go], hi[go] = np.where(f > 0, tg, lo[go]), np.where(f > 0, hi[go], tg)
+            pdf = np.exp(log_c[go] - (dg + 1) / 2 * np.log1p(tg * tg / dg))
             step = np.where(pdf > 0, f / np.maximum(pdf, 1e-300), 0.0)
-            nxt = t + step
-            nxt = np.where((nxt > lo) & (nxt < hi), nxt, 0.5 * (lo + hi))
-            done = np.abs(nxt - t) <= 1e-10 * np.maximum(1.0, t)
-            t = nxt
-            if done.all():
+            nxt = tg + step
+            nxt = np.where((nxt > lo[go]) & (nxt < hi[go]), nxt, 0.5 * (lo[go] + hi[go]))
+            # (Or its tail is q to 1e-12 of q: far in the tail the tail's rounding over the pdf
+            # keeps the steps above the step tolerance, and the loop ran to its cap.)
+            done = (np.abs(nxt - tg) <= 1e-10 * np.maximum(1.0, tg)) | (np.abs(f) <= 1e-12 * q)
+            nxt = np.where(np.abs(f) <= 1e-12 * q, tg, nxt)
+            t[go] = nxt
+            go = go[~done]
+            if go.size == 0:
                 break
         out[finite] = t
     return out

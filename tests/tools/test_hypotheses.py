@@ -34,6 +34,31 @@ def _paired_family(rng, base, k, bias=0.0, reach=None, sigma=0.005):
     return hy.Family(hy.paired(stock, ours, 2 * k if reach is None else reach, hy.TILE))
 
 
+def test_t_quantiles_over_a_whole_grid_of_degrees_of_freedom(monkeypatch):
+    """t_upper over a tile grid's many Welch degrees of freedom (1 to 200) at once, down to the
+    Bonferroni shares of alpha a large film gives (1e-9): each t's tail probability is q (to 1e-9
+    of q), and each element stops at its own convergence. (Before: the bracket's top of 1e4
+    returned 1e4 where df 1 needs 3e8; the whole array took 40 tail evaluations per element
+    where most need 2-5, most of test_hypotheses' time.) The tail evaluations are the work
+    asserted, not a time."""
+    from layerbvh_mitsuba.ab import metrics
+    tail, evaluated = metrics._two_sided_p_student, []
+
+    def counted(t, df):
+        evaluated.append(np.size(t))
+        return tail(t, df)
+    monkeypatch.setattr(metrics, "_two_sided_p_student", counted)
+    df = np.concatenate([np.random.default_rng(2).uniform(1, 200, 5000), [1.0, 2.0, 3.5]])
+    for q in (1e-9, 1e-4, 0.05):
+        evaluated.clear()
+        t = hy.t_upper(q, df)
+        assert np.max(np.abs(0.5 * tail(t, df) - q)) < 1e-9 * q, q
+        assert len(evaluated) <= 25 and sum(evaluated) <= 12 * df.size, (q, len(evaluated), sum(evaluated) / df.size)
+    q = 1e-9  # df 1 is Cauchy's: P(T > t) = 1/2 - atan(t)/pi
+    assert float(hy.t_upper(q, 1.0)) == pytest.approx(1 / math.tan(math.pi * q), rel=1e-9)
+    assert float(hy.t_upper(0.001, 1.0)) == pytest.approx(318.3088, rel=1e-6)  # Student t tables
+
+
 def test_quantiles_and_reach():
     assert hy.normal_upper(0.025) == pytest.approx(1.959964, abs=1e-5)
     assert float(hy.t_upper(0.025, 10.0)) == pytest.approx(2.228139, abs=1e-4)  # Student t tables
