@@ -243,6 +243,12 @@ MUTATIONS = (
              "T_MAX = 1e12 ",
              "T_MAX = 1e4 ",
              ("tests/tools/test_hypotheses.py::test_t_quantiles_over_a_whole_grid_of_degrees_of_freedom",)),
+    Mutation("census_keeps_callee_names", "the kernel census's families keep the names of called functions (a "
+             "literal inside a virtual call's target then splits the family)",
+             "layerbvh/kernel_census.py",
+             'r"(drjit|func)_[0-9a-f]{32}|',
+             'r"drjit_[0-9a-f]{32}|',
+             ("tests/engine/test_kernel_census.py::test_a_literal_inside_a_called_function_keeps_the_family",)),
     Mutation("frozen_step_one_recording", "the frozen step keeps one recording, so every other batch shape traces "
              "the walk again",
              "layerbvh/wavefront.py",

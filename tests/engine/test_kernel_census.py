@@ -37,3 +37,16 @@ def test_the_census_records_compiles_and_groups_literal_variants(tmp_path):
     c = kernel_census.census(rows)
     assert c["distinct_kernels"] == 3
     assert [f["kernels"] for f in c["literal_families"]] == [2]
+
+
+def test_a_literal_inside_a_called_function_keeps_the_family():
+    """A virtual call's target is named by a hash of its code: two kernels that differ only by a
+    constant inside it (a medium's density) differ in that name too, and are one family."""
+    from layerbvh import kernel_census
+
+    def ir(name, value):
+        return (f"call fastcc @func_{name}(<8 x float> %f1)\ndefine fastcc @func_{name}(<8 x float> %in_0) {{\n"
+                f"  %f2 = fmul <8 x float> %in_0, {value}\n}}\n")
+    a, b = ir("3d7133ddaf712eb2e0b32e0290247036", "2.0e+02"), ir("f45533560a403a474488185260488fd6", "1.0e-04")
+    assert kernel_census.family(a) == kernel_census.family(b)
+    assert kernel_census.family(a) != kernel_census.family(a.replace("fmul", "fadd"))
