@@ -3,6 +3,7 @@ from .auto import AUTO, AutoPolicy, choice_key
 from .backend import (LLVM_ISAS, apply_llvm_isa_from_env, cpu_model, from_numpy, llvm_isa, llvm_vector_width,
                       set_llvm_isa, set_llvm_vector_width)
 from .inputs import DEFAULT_BRANCHING, DEFAULT_LEAF_SIZE, default_leaf_size, DEFAULT_TREELET_HEIGHT, PARAM_RANGES, check_mesh, check_param
+from .collector import collector_held
 from .bvh import BATCH_RAYS, TRACE_MODES, Hits, LayerBVH, Occlusion, build, build_instanced
 from .instances import Group, Instance
 from .layout import BRANCHINGS, LayerLayout, check_layout
@@ -18,7 +19,7 @@ __all__ = ["AUTO", "AutoPolicy", "choice_key", "BATCH_RAYS", "TRACE_MODES", "bui
            "LayerLayout", "check_layout", "MODES", "MISS", "PARAM_RANGES", "check_mesh", "check_param",
            "DEFAULT_TREELET_HEIGHT", "DEFAULT_LEAF_SIZE", "DEFAULT_BRANCHING", "BRANCHINGS", "default_leaf_size",
            "MAX_DEPTH", "cpu_model", "from_numpy", "llvm_vector_width", "set_llvm_vector_width", "LLVM_ISAS", "llvm_isa",
-           "set_llvm_isa",
+           "set_llvm_isa", "collector_held",
            # the locality model
            "LocalityRow", "LocalitySettings", "RaySet", "at_headline", "headline_config", "measure", "preset_verdict", "replay",
            "PRESETS", "CacheLevel", "Preset", "preset"]

@@ -1,13 +1,12 @@
 """Trace drivers: one kernel per batch (per_ray) and sorted/unsorted wavefront steps over treelets."""
 from __future__ import annotations
 
-import contextlib
-import gc
 import os
 import time
 
 import drjit as dr
 
+from .collector import collector_held
 from .inputs import RayBatch
 from .layout import DeviceLayout, treelet_levels
 from .state import DirectRays, EntryStack, RayRecords, RayState, Results, SlotRays, StateRecords
@@ -38,7 +37,8 @@ TAIL_STEPS = 32
 # Off unless LAYERBVH_FROZEN_STEPS=1: a run of the suite with them on aborted inside a frozen
 # step's recording. Cause (PERFORMANCE.md entry 55): Python's cycle collector ran there and freed
 # a Mitsuba scene, whose release drjit cannot record; the steps now hold the collector off
-# (_no_collection). tests/engine/test_engine_frozen.py runs them on, against the unfrozen steps.
+# (collector.collector_held). tests/engine/test_engine_frozen.py runs them on, against the
+# unfrozen steps.
 FROZEN_STACK_BYTES = 16 << 20
 FROZEN_BACKENDS = ("llvm",) if os.environ.get("LAYERBVH_FROZEN_STEPS") == "1" else ()
 
@@ -149,7 +149,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         if takes_tail(n_active, n0, stats.steps, tail_rays, tail_fraction):
             # Same nearest-first order as the steps, so the same hits and work counts.
             if frozen:
-                with _no_collection():
+                with collector_held():
                     _TAIL(m, lay, rays.rec, rec, perm, counters, res.fields(), tuple(stack), local_rows(cap_global),
                           **kw)
             else:
@@ -164,7 +164,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
             break
         rec_out = dr.empty(m.UInt32, n_active * words)
         if frozen:  # (a frozen step's replay launches its kernels as it goes)
-            with _no_collection():
+            with collector_held():
                 rec, keys, n_done_w, counters = _STEP(m, lay, rays.rec, rec, perm, counters, res.fields(),
                                                       tuple(stack), rec_out, cap_local, finished_key, **kw)
         else:
@@ -289,22 +289,6 @@ def _configuration(m, lay, *args, **kw) -> tuple:
 
 _STEP = dr.freeze(_frozen_step, limit=32, warn_after=_NO_WARNING, state_fn=_configuration)
 _TAIL = dr.freeze(_frozen_tail, limit=32, warn_after=_NO_WARNING, state_fn=_configuration)
-
-
-@contextlib.contextmanager
-def _no_collection():
-    """Python's cycle collector off while a frozen step records or replays. Whatever it frees then
-    is freed inside the recording, and an object whose release goes through a host callback (a
-    Mitsuba shapegroup's Embree scene, a DLPack import) aborts the process there: drjit 1.5.0
-    cannot record one ("enqueue_host_func(): this function cannot be recorded", PERFORMANCE.md
-    entry 55). Garbage waits for the next collection after the step."""
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if enabled:
-            gc.enable()
 
 
 def _alias(a):

@@ -130,16 +130,17 @@ def t_upper(q: float, df: np.ndarray | float) -> np.ndarray:
         for _ in range(T_ITERATIONS):
             tg, dg = t[go], d[go]
             f = 0.5 * metrics._two_sided_p_student(tg, dg) - q  # decreasing in t
-            lo[go], hi[go] = np.where(f > 0, tg, lo[go]), np.where(f > 0, hi[go], tg)
+            lo_g, hi_g = np.where(f > 0, tg, lo[go]), np.where(f > 0, hi[go], tg)
+            lo[go], hi[go] = lo_g, hi_g
             pdf = np.exp(log_c[go] - (dg + 1) / 2 * np.log1p(tg * tg / dg))
             step = np.where(pdf > 0, f / np.maximum(pdf, 1e-300), 0.0)
             nxt = tg + step
-            nxt = np.where((nxt > lo[go]) & (nxt < hi[go]), nxt, 0.5 * (lo[go] + hi[go]))
-            # (Or its tail is q to 1e-12 of q: far in the tail the tail's rounding over the pdf
-            # keeps the steps above the step tolerance, and the loop ran to its cap.)
-            done = (np.abs(nxt - tg) <= 1e-10 * np.maximum(1.0, tg)) | (np.abs(f) <= 1e-12 * q)
-            nxt = np.where(np.abs(f) <= 1e-12 * q, tg, nxt)
-            t[go] = nxt
+            nxt = np.where((nxt > lo_g) & (nxt < hi_g), nxt, 0.5 * (lo_g + hi_g))
+            # (Or its tail is q to 1e-12 of q, and it stays: far in the tail the tail's rounding
+            # over the pdf keeps the steps above the step tolerance, and the loop ran to its cap.)
+            solved = np.abs(f) <= 1e-12 * q
+            done = (np.abs(nxt - tg) <= 1e-10 * np.maximum(1.0, tg)) | solved
+            t[go] = np.where(solved, tg, nxt)
             go = go[~done]
             if go.size == 0:
                 break

@@ -13,33 +13,12 @@ body emitted twice, "invalid redefinition of function", and `jitc_fail` aborts t
 So while a render is recorded the collector is paused: the registry holds the same instances from
 the first call to the last. (What was garbage before stays until the render ends; a full collection
 first would drop their callables from the kernel, but costs ~0.12 s per render with Mitsuba, numba
-and Dask loaded, measured here: more than many small renders take.)
+and Dask loaded, measured here: more than many small renders take.) The hold is layerbvh.collector_held.
 """
 from __future__ import annotations
 
-import contextlib
-import gc
-import threading
+import layerbvh
 
-_lock = threading.Lock()
-_depth = 0                # renders being recorded (nested, or in other threads)
-_was_enabled = True       # the collector's state before the outermost one
-
-
-@contextlib.contextmanager
-def instances_held():
-    """Pause the cyclic collector until the outermost holder leaves (also on an exception).
-    Usable as a decorator."""
-    global _depth, _was_enabled
-    with _lock:
-        if _depth == 0:
-            _was_enabled = gc.isenabled()
-            gc.disable()
-        _depth += 1
-    try:
-        yield
-    finally:
-        with _lock:
-            _depth -= 1
-            if _depth == 0 and _was_enabled:
-                gc.enable()
+# The hold itself is the engine's (layerbvh.collector_held): one counter for the renders and the
+# frozen wavefront steps inside them, so neither switches the collector on under the other.
+instances_held = layerbvh.collector_held

@@ -147,8 +147,7 @@ def _children(obj) -> list:
     (a shapegroup: its shapes in the order of Mitsuba's shape_index)."""
     cb = _objects_callback()()
     obj.traverse(cb)
-    objects, cb.objects = cb.objects, None
-    return objects
+    return cb.objects
 
 
 # One callback class per variant, kept: a class made per call is a reference cycle (class ->
