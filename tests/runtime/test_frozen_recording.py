@@ -15,7 +15,7 @@ ROOT = Path(__file__).resolve().parents[2]
 # A Mitsuba scene whose last reference sits in a reference cycle becomes garbage just as a frozen
 # step starts recording, with the collector set to run at the next allocation: the collection
 # frees the scene inside the recording unless the steps hold the collector off
-# (wavefront._no_collection). Measured without it: "enqueue_host_func(): this function cannot be
+# (layerbvh.collector_held). Measured without it: "enqueue_host_func(): this function cannot be
 # recorded!", SIGABRT. In a subprocess: the failure is an abort.
 CHILD = """
 import gc, sys, drjit as dr, mitsuba as mi
