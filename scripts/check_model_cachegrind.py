@@ -24,6 +24,9 @@ How (issue 41):
   preset of the same geometry (one core, the child's SIMD width, Dr.Jit's packet schedule), and
   the same difference is taken.
 What each side leaves out is printed with the table (BLIND_SPOTS).
+Exit status: 0 when the model's sorted / per_ray ratio and verdict agree with valgrind's at every D1
+size and level, 3 when one does not (the JSON is written all the same), 1 on a measurement that
+stayed disturbed, 2 without valgrind.
 """
 from __future__ import annotations
 
@@ -49,6 +52,7 @@ D1_WAYS, LL_WAYS = 8, 16
 SECTION = "cachegrind"  # BENCHMARKS.md's markers around the section
 # The agreement issue 41 asks for.
 RATIO_TOLERANCE, ABSOLUTE_TOLERANCE = 0.15, 0.30
+DISAGREES_EXIT = 3  # (1: a disturbed measurement, 2: no valgrind)
 BLIND_SPOTS = (
     "The model simulates the traversal kernels' loads only: the kernels' stores (state records, hits, "
     "the entries a ray holds at a step's end), the counting sort and the host's work between steps "
@@ -409,7 +413,20 @@ def main(argv=None) -> int:
         print(f"D1 {v['d1_kib']} KiB {v['level']}: sorted / per_ray model {v['model_ratio']:.2f}, valgrind "
               f"{v['cachegrind_ratio']:.2f}: ratio {'agrees' if v['ratio_agrees'] else 'DISAGREES'}, absolute "
               f"{'agrees' if v['absolute_agrees'] else 'DISAGREES'}, verdict {'agrees' if v['verdict_agrees'] else 'DISAGREES'}")
-    return 0
+    return disagreement(doc["verdicts"])
+
+
+def disagreement(verdicts: list[dict]) -> int:
+    """The check's exit status (issue 57 item 5): DISAGREES_EXIT, with one line naming where, when
+    the model's sorted / per_ray ratio or its verdict (which mode misses less) disagrees with
+    valgrind's at any D1 size or level; 0 when every one agrees. The JSON is written either way,
+    so BENCHMARKS.md shows the disagreement too."""
+    bad = [f"{v['level']} (D1 {v['d1_kib']} KiB)" for v in verdicts if not (v["ratio_agrees"] and v["verdict_agrees"])]
+    if not bad:
+        return 0
+    print(f"check_model_cachegrind: the model disagrees with valgrind on sorted / per_ray (ratio beyond "
+          f"{RATIO_TOLERANCE:.0%} or the other verdict) at {', '.join(bad)}", file=sys.stderr)
+    return DISAGREES_EXIT
 
 
 if __name__ == "__main__":

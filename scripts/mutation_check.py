@@ -503,6 +503,12 @@ MUTATIONS = (
              '    if min(out["D1"], out["LL"], out["instructions"]) < 0:\n',
              "    if False:\n",
              ("tests/tools/test_model_cachegrind.py::test_a_disturbed_measurement_is_refused",)),
+    Mutation("cachegrind_disagreement_passes", "the valgrind check exits 0 where the model's sorted / per_ray "
+             "verdict is the other one (issue 57 item 5)",
+             "scripts/check_model_cachegrind.py",
+             'for v in verdicts if not (v["ratio_agrees"] and v["verdict_agrees"])]',
+             'for v in verdicts if not v["ratio_agrees"]]',
+             ("tests/tools/test_model_cachegrind.py::test_a_disagreement_with_valgrind_fails_the_check",)),
     Mutation("volpathmis_forgets_nee_after_scattering", "volpathmis keeps the old p_over_f_nee after a real "
              "collision in a medium (the shared walk's strategy hook does nothing)",
              "plugin/runtime/estimators/volpathmis.py",

@@ -30,8 +30,11 @@ def test_the_model_misses_what_valgrind_misses_on_the_per_ray_kernel(tmp_path):
                           str(SCENES / "meshes" / "bunny.ply"), "--rays", "4000", "--d1", "32",
                           "--modes", "per_ray,layer_sorted", "--json", str(out)],
                          capture_output=True, text=True, timeout=400)
-    assert run.returncode == 0, run.stderr[-2000:]
     doc = json.loads(out.read_text())
+    # the layer mode too (issue 57 item 5): the model's sorted / per_ray ratio within 15% of
+    # valgrind's and the same verdict, at D1 and LL; the check exits 3 where they disagree
+    assert run.returncode == 0 and all(v["ratio_agrees"] and v["verdict_agrees"] for v in doc["verdicts"]), \
+        (run.stderr[-2000:], doc["verdicts"])
     rows = {(r["mode"], r["level"]): r for r in doc["rows"]}
     assert set(rows) == {(m, lv) for m in ("per_ray", "layer_sorted") for lv in ("D1", "LL")}
     # the kernels under valgrind return the model's hits, ray for ray, in both modes
@@ -95,3 +98,19 @@ def test_a_disturbed_measurement_is_measured_again():
     with pytest.raises(RuntimeError, match=f"{check.ATTEMPTS} measurements, each disturbed"):
         check.cachegrind_misses("work", 10, ["per_ray"], 32, 1024, measure=always)
     assert len(calls) == check.ATTEMPTS >= 3
+
+
+def test_a_disagreement_with_valgrind_fails_the_check(capsys):
+    """Issue 57 item 5: the check exits non-zero, naming where, when the model's sorted / per_ray
+    ratio is beyond the tolerance or its verdict is the other one, at any D1 size or level."""
+    spec = importlib.util.spec_from_file_location("check_model_cachegrind", ROOT / "scripts" / "check_model_cachegrind.py")
+    check = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(check)
+    agree = {"d1_kib": 32, "level": "D1", "ratio_agrees": True, "verdict_agrees": True}
+    assert check.disagreement([agree, {**agree, "level": "LL"}]) == 0
+    assert capsys.readouterr().err == ""
+    flipped = {**agree, "d1_kib": 8, "verdict_agrees": False}  # (the 8 KiB D1 of issue 57: 0.76 against 1.07)
+    off = {**agree, "level": "LL", "ratio_agrees": False}
+    assert check.disagreement([agree, flipped, off]) == check.DISAGREES_EXIT != 0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "at D1 (D1 8 KiB), LL (D1 32 KiB)" in err, err
