@@ -1,11 +1,14 @@
 """The traversal kernel: a nearest-first stack walk over the Layer BVH, whole (per-ray) or one treelet at a time (wavefront step)."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import drjit as dr
 
 from .geometry import FAR_SCALE, hit_children, hit_children_wide, hit_triangle, setup_ray, to_object_space
 from .layout import (EXIT_BIT, INSTANCE_TAG, LEAF_BIT, LEAF_FIRST_MASK, LEAVE, PAYLOAD_MASK, POP, DeviceLayout, leaf_range,
                      node_format)
+from .loopstate import Held
 from .state import MISS, EntryStack, RayState
 
 # Sorting networks that order a wide node's children by entry distance (compare-exchange pairs,
@@ -117,6 +120,27 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
     next_treelet = m.UInt32(step_treelet)
     base = s.slot * dr.opaque(m.UInt32, stack.rows) if stack is not None else m.UInt32(0)  # (opaque: one kernel per tree depth)
     active = dr.full(m.Bool, True, dr.width(s.link)) if active is None else m.Bool(active)
+    # The loop's state is what its body changes. @syntax makes every name the body reads or
+    # writes a state variable, and Dr.Jit, finding one unchanged after tracing the body, traces
+    # the whole body a second time without it: twice the host time of every walk (PERFORMANCE.md
+    # entry 58). So what the body only reads, and what this walk's configuration never changes
+    # (the ray outside instances, counters it does not keep, the stack pointer without a global
+    # stack, the next treelet of an unbounded walk), enter it Held: opaque to Dr.Jit, read as before.
+    lay, s, stack, spill, results = (Held.of(x) for x in (lay, s, stack, spill, results))
+    fixed = Held(_Fixed(base=base, step_treelet=step_treelet, world_o=world_o, world_d=world_d))
+    counting = dict(inner=count_work, instanced=count_work and instanced, stack=count_work and stack is not None,
+                    treelet=count_work and bounded, spill=count_work and spill is not None,
+                    hitw=count_work and results is not None)
+    ray, in_inst, hit_inst = (Held.unless(instanced, x) for x in (ray, in_inst, hit_inst))
+    n_inner, n_leaf, n_tri, n_iter, n_root = (Held.unless(counting["inner"], x)
+                                              for x in (n_inner, n_leaf, n_tri, n_iter, n_root))
+    n_top, n_enter = (Held.unless(counting["instanced"], x) for x in (n_top, n_enter))
+    n_stack = Held.unless(counting["stack"], n_stack)
+    n_treelet = Held.unless(counting["treelet"], n_treelet)
+    n_spill = Held.unless(counting["spill"], n_spill)
+    n_hitw = Held.unless(counting["hitw"], n_hitw)
+    sp = Held.unless(stack is not None, sp)
+    next_treelet = Held.unless(bounded, next_treelet)
 
     while active:
         if count_work:
@@ -148,7 +172,7 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
         e_link, e_t = m.UInt32(loc_link[nl]), m.Float(loc_t[nl])
         from_global = m.Bool(False)
         if stack is not None:
-            from_global, sp, e_link, e_t, n_stack = _pop_global(m, stack, base, want & ~from_local, sp, e_link, e_t,
+            from_global, sp, e_link, e_t, n_stack = _pop_global(m, stack, fixed.base, want & ~from_local, sp, e_link, e_t,
                                                                  n_stack, count_work)
         empty = want & ~from_local & ~from_global
         done |= empty
@@ -157,9 +181,9 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
         # slab test's rounding margin, as in hit_children: ties must stay reachable).
         link = dr.select(want, dr.select(active & (e_t <= t_best * FAR_SCALE), e_link, POP), link)
         if instanced:
-            link, in_inst, ray = _leave_instance(m, want, link, in_inst, ray, world_o, world_d)
+            link, in_inst, ray = _leave_instance(m, want, link, in_inst, ray, fixed.world_o, fixed.world_d)
         if bounded:
-            leave, tre, n_treelet = _entry_treelet(m, lay, step_treelet, want, active, link, from_global, n_treelet,
+            leave, tre, n_treelet = _entry_treelet(m, lay, fixed.step_treelet, want, active, link, from_global, n_treelet,
                                                    count_work)
             next_treelet = dr.select(leave, tre, next_treelet)
             active &= ~leave
@@ -168,7 +192,7 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
         entered = m.Bool(False)
         if instanced:
             entered, in_inst, ray, link, n_enter, next_treelet, active = _enter_instance(
-                m, lay, active, tri_cur, tri_end, link, in_inst, ray, world_o, world_d, n_enter, next_treelet,
+                m, lay, active, tri_cur, tri_end, link, in_inst, ray, fixed.world_o, fixed.world_d, n_enter, next_treelet,
                 count_work, bounded)
 
         # -- a node: all children; on with the nearest, push the others (far to near) --
@@ -231,9 +255,13 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
                 n_leaf += 1
 
         if dr.hint(spill is not None, mode="scalar"):  # -- a step's end: the entries the ray holds, written back --
-            n_spill = _spill_held(m, spill, loc_link, loc_t, cap, walking & ~active & ~done, base + sp, nl, n_spill,
+            n_spill = _spill_held(m, spill, loc_link, loc_t, cap, walking & ~active & ~done, fixed.base + sp, nl, n_spill,
                                   count_work)
 
+    ray, in_inst, hit_inst, sp, next_treelet = (Held.value(x) for x in (ray, in_inst, hit_inst, sp, next_treelet))
+    n_inner, n_leaf, n_tri, n_iter, n_root, n_top, n_enter, n_stack, n_treelet, n_spill, n_hitw = (
+        Held.value(x) for x in (n_inner, n_leaf, n_tri, n_iter, n_root, n_top, n_enter, n_stack, n_treelet, n_spill,
+                                 n_hitw))
     out = RayState(t=t_best, prim=prim_best, link=link, sp=sp, slot=s.slot, treelet=next_treelet)
     if instanced:
         out.inst, out.hit_inst = in_inst, hit_inst
@@ -244,6 +272,17 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
         if instanced:
             out.n_top, out.n_enter = n_top, n_enter
     return out, done, nl, u_best, v_best
+
+
+@dataclass(frozen=True)
+class _Fixed:
+    """What a walk's loop reads and never changes besides the tree and the state: the ray's
+    global stack base, the step's treelet, the ray in world space."""
+
+    base: object
+    step_treelet: object
+    world_o: object
+    world_d: object
 
 
 @dr.syntax

@@ -503,6 +503,18 @@ MUTATIONS = (
              '    if min(out["D1"], out["LL"], out["instructions"]) < 0:\n',
              "    if False:\n",
              ("tests/tools/test_model_cachegrind.py::test_a_disturbed_measurement_is_refused",)),
+    Mutation("walk_state_holds_the_tree", "a walk's loop state takes the tree, the state and the stacks it only "
+             "reads (Dr.Jit traces the body twice to drop them)",
+             "layerbvh/walk.py",
+             "    lay, s, stack, spill, results = (Held.of(x) for x in (lay, s, stack, spill, results))\n",
+             "",
+             ("tests/engine/test_engine_kernels.py::test_a_walk_traces_its_loop_once[per_ray-2-False]",)),
+    Mutation("walk_state_keeps_idle_counters", "a walk's loop state takes the work counters a walk without "
+             "statistics never changes",
+             "layerbvh/walk.py",
+             '    n_inner, n_leaf, n_tri, n_iter, n_root = (Held.unless(counting["inner"], x)\n',
+             '    n_inner, n_leaf, n_tri, n_iter, n_root = (Held.unless(True, x)\n',
+             ("tests/engine/test_engine_kernels.py::test_a_walk_traces_its_loop_once[layer_sorted-4-True]",)),
     Mutation("cachegrind_disagreement_passes", "the valgrind check exits 0 where the model's sorted / per_ray "
              "verdict is the other one (issue 57 item 5)",
              "scripts/check_model_cachegrind.py",

@@ -75,3 +75,56 @@ def test_lazy_rays_are_computed_in_one_kernel(mode):
     lazy_d = m.Array3f(*(-(-c) for c in cols[3:]))
     lazy = _launched(lambda: bvh.trace(lazy_o, lazy_d, mode=mode, stats=False))
     assert len(lazy - evaluated) <= 1, f"{len(lazy - evaluated)} kernels more for lazy rays (one computes them)"
+
+
+def _body_traces(fn) -> list[int]:
+    """How many times each Dr.Jit loop that `fn` runs traced its body."""
+    counts, original = [], dr.while_loop
+
+    def counting(state, cond, body, *args, **kwargs):
+        n = [0]
+
+        def traced(*s):
+            n[0] += 1
+            return body(*s)
+        out = original(state, cond, traced, *args, **kwargs)
+        counts.append(n[0])
+        return out
+    dr.while_loop = counting
+    try:
+        fn()
+    finally:
+        dr.while_loop = original
+    return counts
+
+
+@pytest.mark.parametrize("instanced", [False, True])
+@pytest.mark.parametrize("branching", [2, 4])
+@pytest.mark.parametrize("mode", layerbvh.MODES)
+def test_a_walk_traces_its_loop_once(mode, branching, instanced, bunny):
+    """Every walk (per_ray's, each wavefront step's, the tail's, and the renderer's inline one)
+    traces its loop body once, with and without work counters: a loop state variable that the
+    body leaves unchanged (an input it only reads, a counter this walk does not keep) makes
+    Dr.Jit trace the whole body a second time to drop it, twice the host time of each walk
+    (PERFORMANCE.md entry 58)."""
+    v, f = meshes.procedural_mesh(3000, seed=5)
+    if instanced:
+        groups = [layerbvh.Group(v, f), layerbvh.Group(*bunny)]
+        shifted = [np.hstack([np.eye(3), [[0.1 * k], [0], [0]]]) for k in range(3)]
+        inst = [layerbvh.Instance(g, m) for g, m in zip((0, 1, 0), shifted)]
+        bvh = layerbvh.build_instanced(groups, inst, treelet_height=3, branching=branching)
+    else:
+        bvh = layerbvh.build(v, f, treelet_height=3, branching=branching)
+    o, d = meshes.incoherent_rays(v, 3000, seed=1)
+    for stats in (False, True):
+        counts = _body_traces(lambda: bvh.trace(o, d, mode=mode, stats=stats))
+        assert counts and counts == [1] * len(counts), (stats, counts)
+        counts = _body_traces(lambda: bvh.occluded(o, d, mode=mode, stats=stats))
+        assert counts and counts == [1] * len(counts), ("occluded", stats, counts)
+    if mode == "per_ray":
+        F = bvh.m.Float
+        counts = _body_traces(lambda: dr.eval(bvh.trace_inline([be.from_numpy(F, np.ascontiguousarray(o[:, c]))
+                                                                for c in range(3)],
+                                                               [be.from_numpy(F, np.ascontiguousarray(d[:, c]))
+                                                                for c in range(3)], F(np.inf), bvh.m.Bool(True)).t))
+        assert counts == [1], ("inline", counts)
