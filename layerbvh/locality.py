@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from . import memtrace as mt
+from . import memsites as ms, memtrace as mt
 from .bvh import build
 from .inputs import DEFAULT_BRANCHING, DEFAULT_TREELET_HEIGHT
 from .layout import LayerLayout, node_format, treelet_levels
@@ -81,16 +81,16 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     valid = valid_rays(o, d, tmax)
     order = np.flatnonzero(valid).astype(np.int64)
     n = len(order)
-    nodes_f, nodes_u, tris_f, tris_u, tris_d, tf, nt = mt.layout_views(lay)
-    fst = np.zeros((n_all, mt.F_COLS), np.float32)
-    ist = np.zeros((n_all, mt.I_COLS), np.int64)
+    nodes_f, nodes_u, tris_f, tris_u, tris_d, tf, nt = ms.layout_views(lay)
+    fst = np.zeros((n_all, ms.F_COLS), np.float32)
+    ist = np.zeros((n_all, ms.I_COLS), np.int64)
     mt.setup_rays(o, d, fst, ist, tmax)
     layer = mode != "per_ray"
     # Entry stacks as wavefront.trace sizes them: a node pushes at most branching - 1 entries.
     cap_g = stack_rows(lay)
     cap_local = max(1, (lay.branching - 1) * min(treelet_levels(lay.height, lay.branching), lay.depth)) if layer else cap_g
     cap_max = max(cap_local, cap_g)
-    lanes_held = mt.local_stack_rows(preset.units, preset.resident_warps, warp)
+    lanes_held = ms.local_stack_rows(preset.units, preset.resident_warps, warp)
     loc_link = np.zeros((lanes_held, cap_max + 1), np.int64)
     loc_t = np.zeros((lanes_held, cap_max + 1), np.float32)
     # Entry stacks in global memory, as wavefront.trace allocates them (only the layer modes have them).
@@ -110,27 +110,27 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
         # (state.StateRecords: in that step's lane order), through the sort's permutation; from a
         # compact record, the treelet of a node link (walk._record_treelet).
         sizes["state_records"] = n_all * record_bytes
-        start = [("ray_records", RAY_RECORD_BYTES, mt.BY_SLOT), ("state_records", record_bytes, mt.BY_PREVIOUS_LANE)] \
-            + ([("node_treelet", 4, mt.BY_LINK_NODE)] if compact else [])
+        start = [("ray_records", RAY_RECORD_BYTES, ms.BY_SLOT), ("state_records", record_bytes, ms.BY_PREVIOUS_LANE)] \
+            + ([("node_treelet", 4, ms.BY_LINK_NODE)] if compact else [])
     else:
         sizes.update({f"ray_{k}": n_all * 4 for k in range(PER_RAY_LOADS)})
-        start = [(f"ray_{k}", 4, mt.BY_SLOT) for k in range(PER_RAY_LOADS)]
+        start = [(f"ray_{k}", 4, ms.BY_SLOT) for k in range(PER_RAY_LOADS)]
     base = _regions(sizes)
-    site_base = np.zeros(mt.SITES, np.int64)
-    site_bytes = np.ones(mt.SITES, np.int64)
-    site_local = np.zeros(mt.SITES, np.bool_)
+    site_base = np.zeros(ms.SITES, np.int64)
+    site_bytes = np.ones(ms.SITES, np.int64)
+    site_local = np.zeros(ms.SITES, np.bool_)
     for site, region, nbytes, local in (
-            (mt.S_TRI, "tris", 64, False), (mt.S_LOC_R_LINK, "local_link", 4, True),
-            (mt.S_LOC_R_T, "local_t", 4, True), (mt.S_STACK_LINK, "stack_link", 4, False),
-            (mt.S_STACK_T, "stack_t", 4, False), (mt.S_NODE_TRELET, "node_treelet", 4, False),
-            (mt.S_TF, "treelet_first", 4, False), (mt.S_NODE, "nodes", node_format(lay.branching).bytes, False),
-            (mt.S_LOC_W_LINK, "local_link", 4, True), (mt.S_LOC_W_T, "local_t", 4, True)):
+            (ms.S_TRI, "tris", 64, False), (ms.S_LOC_R_LINK, "local_link", 4, True),
+            (ms.S_LOC_R_T, "local_t", 4, True), (ms.S_STACK_LINK, "stack_link", 4, False),
+            (ms.S_STACK_T, "stack_t", 4, False), (ms.S_NODE_TRELET, "node_treelet", 4, False),
+            (ms.S_TF, "treelet_first", 4, False), (ms.S_NODE, "nodes", node_format(lay.branching).bytes, False),
+            (ms.S_LOC_W_LINK, "local_link", 4, True), (ms.S_LOC_W_T, "local_t", 4, True)):
         site_base[site], site_bytes[site], site_local[site] = base[region], nbytes, local
-    for j in range(1, mt.MAX_PUSH):  # a wide node's further pushes (local, like the first)
-        for site, region in zip((mt.S_PUSH + 2 * (j - 1), mt.S_PUSH + 2 * (j - 1) + 1), ("local_link", "local_t")):
+    for j in range(1, ms.MAX_PUSH):  # a wide node's further pushes (local, like the first)
+        for site, region in zip((ms.S_PUSH + 2 * (j - 1), ms.S_PUSH + 2 * (j - 1) + 1), ("local_link", "local_t")):
             site_base[site], site_bytes[site], site_local[site] = base[region], 4, True
     for k, (region, nbytes, _) in enumerate(start):
-        site_base[mt.S_START + k], site_bytes[mt.S_START + k] = base[region], nbytes
+        site_base[ms.S_START + k], site_bytes[ms.S_START + k] = base[region], nbytes
     start_sites = np.arange(len(start), dtype=np.int64)
     start_by = np.array([by for _, _, by in start], np.int64)
     prev_pos = np.zeros(n_all, np.int64)
@@ -139,10 +139,10 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     caches = Caches(preset)
     tags, stamps, params, counts, clock = caches.arrays
     n_levels = len(preset.levels)
-    tally = np.zeros((mt.SITES, 2), np.int64)
-    levels_hit = np.zeros((mt.SITES, n_levels + 1), np.int64)
+    tally = np.zeros((ms.SITES, 2), np.int64)
+    levels_hit = np.zeros((ms.SITES, n_levels + 1), np.int64)
     lanes = np.zeros(4, np.int64)
-    loads = np.zeros((n_all, mt.SITES), np.int32)
+    loads = np.zeros((n_all, ms.SITES), np.int32)
     views = (nodes_f, nodes_u, tris_f, tris_u, tris_d, tf, nt)
     state = (fst, ist, loc_link, loc_t, g_link, g_t)
     sites = (site_base, site_bytes, site_local, start_sites, start_by, prev_pos, preset.segment_bytes)
@@ -190,20 +190,20 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     assert counts[0].sum() == tally[:, 0].sum() == levels_hit.sum(), "the cache model lost transactions"
     prim = np.full(n_all, MISS, np.int64)
     t = np.full(n_all, np.inf, np.float32)
-    prim[valid] = ist[valid, mt.I_PRIM]
+    prim[valid] = ist[valid, ms.I_PRIM]
     hit = prim != MISS
-    t[hit] = fst[hit, mt.F_T]
+    t[hit] = fst[hit, ms.F_T]
     work = {name: np.where(valid, ist[:, col], 0) for name, col in (
-        ("inner_nodes", mt.I_INNER), ("leaves", mt.I_LEAF), ("triangles", mt.I_TRI), ("iterations", mt.I_ITER),
-        ("steps", mt.I_STEPS), ("entries_written", mt.I_SPILL), ("hits_written", mt.I_HITW))}
-    kinds = {kind: sites for kind, (sites, _) in mt.LOAD_KINDS.items()}
-    kinds["ray"] = tuple(mt.S_START + k for k in ((0,) if layer else range(PER_RAY_LOADS)))
-    kinds["state"] = (mt.S_START + 1,) if layer else ()
+        ("inner_nodes", ms.I_INNER), ("leaves", ms.I_LEAF), ("triangles", ms.I_TRI), ("iterations", ms.I_ITER),
+        ("steps", ms.I_STEPS), ("entries_written", ms.I_SPILL), ("hits_written", ms.I_HITW))}
+    kinds = {kind: sites for kind, (sites, _) in ms.LOAD_KINDS.items()}
+    kinds["ray"] = tuple(ms.S_START + k for k in ((0,) if layer else range(PER_RAY_LOADS)))
+    kinds["state"] = (ms.S_START + 1,) if layer else ()
     per_kind = {kind: [loads[:, k] for k in sites] for kind, sites in kinds.items() if sites}
     # (a kind's sites are loaded together, so each counts its loads once; replay() checks they agree)
     assert all((c == cs[0]).all() for cs in per_kind.values() for c in cs), "a load kind's sites disagree"
     per_ray_loads = {kind: cs[0] for kind, cs in per_kind.items()}  # (+ a step's lookup, as the kernel counts:)
-    per_ray_loads["node_treelet"] = per_ray_loads["node_treelet"] + (loads[:, mt.S_START + 2] if layer and compact else 0)
+    per_ray_loads["node_treelet"] = per_ray_loads["node_treelet"] + (loads[:, ms.S_START + 2] if layer and compact else 0)
     return ReplayResult(mode=mode, warp=warp, preset=preset, rays=n, prim=prim, t=t, work=work,
                         loads={kind: np.where(valid, c, 0) for kind, c in per_ray_loads.items()},
                         branching=lay.branching, tally=tally,
@@ -284,26 +284,26 @@ def row(kind: str, rep: ReplayResult, treelet_height: int, sampled_from: int | N
 
     def dram(sites):
         return float(lh[list(sites), -1].sum()) * levels[-1].line_bytes / n
-    start_sites = range(mt.S_START, mt.SITES)
+    start_sites = range(ms.S_START, ms.SITES)
     return LocalityRow(
         kind=kind, mode=rep.mode, warp=rep.warp, preset=rep.preset.name, treelet_height=treelet_height, rays=rep.rays,
         inner_per_ray=rep.work["inner_nodes"].sum() / n, leaves_per_ray=rep.work["leaves"].sum() / n,
         tris_per_ray=rep.work["triangles"].sum() / n, iterations_per_ray=rep.work["iterations"].sum() / n,
         kernels=rep.kernels, transactions_per_ray=total / n,
-        node_transactions_per_ray=per_ray(mt.CATEGORY["node"]),
-        triangle_transactions_per_ray=per_ray(mt.CATEGORY["triangle"]),
-        stack_transactions_per_ray=per_ray(mt.CATEGORY["stack"]),
-        local_transactions_per_ray=per_ray(mt.CATEGORY["local"]),
+        node_transactions_per_ray=per_ray(ms.CATEGORY["node"]),
+        triangle_transactions_per_ray=per_ray(ms.CATEGORY["triangle"]),
+        stack_transactions_per_ray=per_ray(ms.CATEGORY["stack"]),
+        local_transactions_per_ray=per_ray(ms.CATEGORY["local"]),
         ray_transactions_per_ray=per_ray(start_sites),
         requests_per_transaction=float(rep.tally[:, 1].sum()) / total if total else 0.0,
         simd_efficiency=rep.lane_iterations / (rep.warp_iterations * rep.warp) if rep.warp_iterations else 0.0,
         l1_hit_rate=rate(0), l2_hit_rate=rate(1) if len(levels) > 1 else 0.0,
         l3_hit_rate=rate(2) if len(levels) > 2 else None,
         l2_bytes_per_ray=float(total - lh[:, 0].sum()) * levels[0].line_bytes / n,
-        dram_bytes_per_ray=dram(range(mt.SITES)),
-        node_dram_bytes_per_ray=dram(mt.CATEGORY["node"]), triangle_dram_bytes_per_ray=dram(mt.CATEGORY["triangle"]),
+        dram_bytes_per_ray=dram(range(ms.SITES)),
+        node_dram_bytes_per_ray=dram(ms.CATEGORY["node"]), triangle_dram_bytes_per_ray=dram(ms.CATEGORY["triangle"]),
         sort_bytes_per_ray=rep.sort_bytes / n,
-        total_dram_bytes_per_ray=dram(range(mt.SITES)) + (rep.sort_bytes + rep.result_bytes) / n,
+        total_dram_bytes_per_ray=dram(range(ms.SITES)) + (rep.sort_bytes + rep.result_bytes) / n,
         branching=rep.branching, result_bytes_per_ray=rep.result_bytes / n, steps_per_ray=float(rep.work["steps"].sum()) / n,
         sort_bytes_per_ray_step=rep.sort_bytes / rep.ray_steps if rep.ray_steps else 0.0,
         pushed_per_ray_step=rep.pushed / rep.ray_steps if rep.ray_steps else 0.0,

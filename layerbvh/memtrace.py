@@ -20,60 +20,19 @@ from __future__ import annotations
 # lane that pushes writes its K - 1 push slots (the kernel's push is a branch: on a GPU, lanes
 # that push nothing are predicated off). Instanced layouts are not replayed: the locality tools
 # flatten instances.
-
-# numba's on-disk cache checks only the file a function is in: run_kernel compiles memmodel's
-# cache_access and coalesce into itself, so after editing memmodel.py touch this file (or remove
-# layerbvh/__pycache__/*.nb*) or the replay keeps the old model.
 import numba
 import numpy as np
 
-from .geometry import EDGE_ERR, FAR_SCALE, FAR_UNIT, MIN_RCP_INPUT
-from .layout import (BRANCHINGS, EXIT_BIT, LEAF_BIT, LEAF_COUNT_SHIFT, LEAF_FIRST_MASK, NODE_BOX_HI, NODE_BOX_LO,
-                     FAR_COORD, NODE_LINK, PAYLOAD_MASK, POP, TRI_FACE, TRI_FLOATS, TRI_NORMAL, TRI_VERTEX, LayerLayout, node_format)
+from . import geometry, layout, memmodel, memsites, numba_cache
+from .layout import TRI_FACE
 from .memmodel import cache_access, coalesce
-
-# -- constants as plain ints/float32 (numba folds them; numpy uint32 would promote to float) ------
-_LEAF, _EXIT, _PAYLOAD = int(LEAF_BIT), int(EXIT_BIT), int(PAYLOAD_MASK)
-_FIRST, _SHIFT, _POP = int(LEAF_FIRST_MASK), LEAF_COUNT_SHIFT, int(POP)
-_FAR = np.float32(FAR_SCALE)            # Dr.Jit multiplies a Float by a Python float in float32
-_EDGE = np.float32(EDGE_ERR)
-_FAR_COORD, _FAR_UNIT = np.float32(FAR_COORD), np.float32(FAR_UNIT)
-_MIN_RCP = np.float32(MIN_RCP_INPUT)
-_LO0, _LO1, _HI0, _HI1 = NODE_BOX_LO[0], NODE_BOX_LO[1], NODE_BOX_HI[0], NODE_BOX_HI[1]
-_LK0, _LK1 = NODE_LINK
-_V0, _V1, _V2 = TRI_VERTEX
-_NRM = TRI_NORMAL // 2                  # first float64 slot of the stored normal
-_FLT_MAX = np.float32(3.4028234663852886e38)  # walk's clamp of a hit child's entry distance
-
-# -- per-ray state: columns of the float32 and int64 state tables -----------------------------------
-F_O, F_D, F_INV, F_SX, F_SY, F_SZ, F_T, F_U, F_V = 0, 3, 6, 9, 10, 11, 12, 13, 14
-F_COLS = 16
-(I_KX, I_KY, I_KZ, I_PRIM, I_LINK, I_SP, I_TRELET, I_DONE, I_INNER, I_LEAF, I_TRI, I_ITER, I_STEPS,
- I_SPILL, I_HITW, I_TRI_CUR, I_TRI_END, I_NL, I_ACTIVE, I_NEXT, I_HITS) = range(21)
-I_COLS = 21
-
-# -- load sites (one load instruction each) ----------------------------------------------------------
-S_TRI, S_LOC_R_LINK, S_LOC_R_T, S_STACK_LINK, S_STACK_T, S_NODE_TRELET, S_TF, S_NODE, S_LOC_W_LINK, S_LOC_W_T = range(10)
-# A wide node's push j (j = 0 on top) writes two local slot sites: j = 0 the two above (the binary
-# push's), j >= 1 a pair from S_PUSH on (link, then entry distance).
-MAX_PUSH = max(BRANCHINGS) - 1
-S_PUSH = 10
-S_START = S_PUSH + 2 * (MAX_PUSH - 1)  # first of the per-kernel ray/state loads (StartLoads)
-SITES = S_START + 10
-SITE_NAMES = ("triangle", "local_read_link", "local_read_t", "stack_link", "stack_t", "node_treelet",
-              "treelet_root", "node", "local_write_link", "local_write_t") + tuple(
-                  f"local_write_{w}_{j}" for j in range(1, MAX_PUSH) for w in ("link", "t"))
-# What each site is, for the per-kind breakdown of transactions and traffic.
-CATEGORY = {"node": (S_NODE, S_NODE_TRELET, S_TF), "triangle": (S_TRI,), "stack": (S_STACK_LINK, S_STACK_T),
-            "local": (S_LOC_R_LINK, S_LOC_R_T, S_LOC_W_LINK, S_LOC_W_T) + tuple(range(S_PUSH, S_START))}
-# ... and the start sites are "ray".
-# The kernel's loads by kind: the replay's load sites of each, and the work counter the kernel
-# keeps of it (state.WORK); besides these, each kernel a ray takes part in ("steps") loads its ray
-# (and in a wavefront step its state record) once.
-LOAD_KINDS = {"node": ((S_NODE,), "inner_nodes"), "triangle": ((S_TRI,), "triangles"),
-              "stack": ((S_STACK_LINK, S_STACK_T), "stack_reads"),
-              "node_treelet": ((S_NODE_TRELET,), "treelet_reads"), "exit_root": ((S_TF,), "root_reads")}
-NO_READ = -1
+from .memsites import (BY_LANE, BY_LINK_NODE, BY_SLOT, F_D, F_INV, F_O, F_SX, F_SY, F_SZ, F_T, F_U, F_V, I_ACTIVE,
+                       I_DONE, I_HITS, I_HITW, I_INNER, I_ITER, I_KX, I_KY, I_KZ, I_LEAF, I_LINK, I_NEXT, I_NL,
+                       I_PRIM, I_SP, I_SPILL, I_STEPS, I_TRELET, I_TRI, I_TRI_CUR, I_TRI_END, MAX_PUSH, NO_READ,
+                       SITES, S_LOC_R_LINK, S_LOC_R_T, S_LOC_W_LINK, S_LOC_W_T, S_NODE, S_NODE_TRELET, S_PUSH,
+                       S_STACK_LINK, S_STACK_T, S_START, S_TF, S_TRI, _EDGE, _EXIT, _FAR, _FAR_COORD, _FAR_UNIT,
+                       _FIRST, _FLT_MAX, _HI0, _HI1, _LEAF, _LK0, _LK1, _LO0, _LO1, _MIN_RCP, _NRM, _PAYLOAD, _POP,
+                       _SHIFT, _V0, _V1, _V2)
 
 
 @numba.njit(cache=True, inline="always")
@@ -396,16 +355,6 @@ def _write_back(s, ls, ist, loc_link, loc_t, g_link, g_t):
     return nl
 
 
-def local_stack_rows(units: int, resident: int, warp: int) -> int:
-    """Rows of the replay's local entry stacks: one per lane a unit can hold at once."""
-    return units * resident * warp
-
-
-# Where a start load reads (StartLoads' `by`): the ray's own slot, its lane in this launch, its
-# lane in the launch before (a state record gathered through the sort's permutation), or, in a
-# wavefront step, the node its link names (a compact state record's treelet lookup: an exit
-# link names its treelet and reads nothing).
-BY_SLOT, BY_LANE, BY_PREVIOUS_LANE, BY_LINK_NODE = 0, 1, 2, 3
 
 
 @numba.njit(cache=True, inline="always")
@@ -547,10 +496,4 @@ def next_treelets(order, ist, finished):
     return keys
 
 
-def layout_views(lay: LayerLayout):
-    """The layout's records as the replay reads them: node float32/uint32 rows, triangle
-    float32/uint32/float64 rows, treelet roots, node treelets."""
-    nodes = lay.nodes.reshape(-1, node_format(lay.branching).floats)
-    tris = np.ascontiguousarray(lay.tris.reshape(-1, TRI_FLOATS))
-    return (nodes, nodes.view(np.uint32), tris, tris.view(np.uint32), tris.view(np.float64),
-            lay.treelet_first.astype(np.int64), lay.node_treelet.astype(np.int64))
+numba_cache.follow(globals(), memmodel, memsites, layout, geometry)  # what the replay compiles in (numba_cache)

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import memtrace as mt
+from . import memsites as ms
 from .state import MISS
 
 @dataclass
@@ -41,7 +41,7 @@ def check_trace(bvh, o, d, tmax, any_hit: bool, rep) -> TraceCheck:
     mism = {name: int(np.count_nonzero(np.asarray(work[name]).astype(np.int64) != rep.work[name]))
             for name in rep.work}
     # The loads, per kind: what the kernel counted against what the replay fed to the cache model.
-    counter = {kind: name for kind, (_, name) in mt.LOAD_KINDS.items()} | {"ray": "steps", "state": "steps"}
+    counter = {kind: name for kind, (_, name) in ms.LOAD_KINDS.items()} | {"ray": "steps", "state": "steps"}
     loads = {kind: int(np.count_nonzero(np.asarray(work[counter[kind]]).astype(np.int64) != n))
              for kind, n in rep.loads.items()}
     return TraceCheck(mode=rep.mode, rays=len(rep.prim), hit_mismatches=hits, work_mismatches=mism,

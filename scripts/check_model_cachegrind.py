@@ -227,7 +227,7 @@ def model_misses(bvh, o, d, n: int, mode: str, pre) -> dict:
     """The model's L1 and L2 (last-level) misses per ray of rays n..2n, as valgrind's are taken,
     in total and per kind of load (memtrace.CATEGORY: nodes, triangles, stacks, ray and state
     records)."""
-    from layerbvh import memtrace as mt
+    from layerbvh import memsites as ms
     from layerbvh import replay
     got = {}
     for k in (n, 2 * n):
@@ -237,7 +237,7 @@ def model_misses(bvh, o, d, n: int, mode: str, pre) -> dict:
         miss_l1 = lh.sum(axis=1) - lh[:, 0]
         got[k] = (miss_l1, lh[:, -1], rep.prim, rep.sort_bytes)
     parts = {"D1": {}, "LL": {}}
-    for cat, sites in {**mt.CATEGORY, "ray and state records": tuple(range(mt.S_START, mt.SITES))}.items():
+    for cat, sites in {**ms.CATEGORY, "ray and state records": tuple(range(ms.S_START, ms.SITES))}.items():
         sites = list(sites)
         parts["D1"][cat] = float(got[2 * n][0][sites].sum() - got[n][0][sites].sum()) / n
         parts["LL"][cat] = float(got[2 * n][1][sites].sum() - got[n][1][sites].sum()) / n

@@ -515,6 +515,12 @@ MUTATIONS = (
              '    n_inner, n_leaf, n_tri, n_iter, n_root = (Held.unless(counting["inner"], x)\n',
              '    n_inner, n_leaf, n_tri, n_iter, n_root = (Held.unless(True, x)\n',
              ("tests/engine/test_engine_kernels.py::test_a_walk_traces_its_loop_once[layer_sorted-4-True]",)),
+    Mutation("numba_cache_never_refreshed", "a module's numba cache is kept whatever its dependencies' sources "
+             "(an edited constant served stale)",
+             "layerbvh/numba_cache.py",
+             "        if stamp.exists() and stamp.read_text() == digest:\n",
+             "        if stamp.exists():\n",
+             ("tests/engine/test_numba_cache.py::test_an_edited_dependency_is_compiled_again",)),
     Mutation("cachegrind_disagreement_passes", "the valgrind check exits 0 where the model's sorted / per_ray "
              "verdict is the other one (issue 57 item 5)",
              "scripts/check_model_cachegrind.py",

@@ -10,7 +10,7 @@ import pytest
 
 import layerbvh
 from layerbvh import locality as L
-from layerbvh import memtrace as mt
+from layerbvh import memsites as ms
 from layerbvh.memmodel import CacheLevel, Preset, preset
 from layerbvh import meshes
 from layerbvh_mitsuba.repo import SCENES
@@ -71,8 +71,8 @@ def test_trace_follows_the_kernel_on_wide_trees(bunny, branching):
             if mode != "per_ray":
                 assert rep.kernels > 3 and rep.pushed > 0
                 # every push j of a wide node writes its own local sites: the farthest ones too
-                far = mt.S_PUSH + 2 * (branching - 3)
-                assert rep.tally[far, 1] > 0 and rep.tally[far + 2:mt.S_START, 1].sum() == 0
+                far = ms.S_PUSH + 2 * (branching - 3)
+                assert rep.tally[far, 1] > 0 and rep.tally[far + 2:ms.S_START, 1].sum() == 0
 
 @pytest.mark.parametrize("mode", ["layer_sorted", "layer_unsorted"])
 def test_between_step_bytes_are_what_the_kernel_stored(bunny, mode):
@@ -131,9 +131,9 @@ def test_two_warps_transactions_by_hand():
     assert L.check_trace(bvh, o, d, tmax, False, rep).exact
     assert (rep.prim[:4] == rep.prim[0]).all() and (rep.prim[4:] == rep.prim[4]).all() and rep.prim[0] != rep.prim[4]
     tx = rep.tally[:, 0]
-    assert tx[mt.S_NODE] == 4 and tx[mt.S_TRI] == 4
-    assert sum(tx[s] for s in mt.CATEGORY["local"]) == 16
-    assert tx[mt.S_START:].sum() == 14
+    assert tx[ms.S_NODE] == 4 and tx[ms.S_TRI] == 4
+    assert sum(tx[s] for s in ms.CATEGORY["local"]) == 16
+    assert tx[ms.S_START:].sum() == 14
     assert tx.sum() == 38
     assert rep.warp_iterations == 4 and rep.lane_iterations == 16
     # Warp 0 brings in 13 sectors (7 ray, 2 node, 2 local, 2 triangle) and re-reads the local ones
@@ -184,7 +184,7 @@ def test_sorting_cannot_cut_transactions_of_identical_rays():
     reps = {m: L.replay(bvh.layout, o, d, tmax, m, False, 32, preset("h200")) for m in layerbvh.MODES}
     rows = {m: L.row("same", rep, 4) for m, rep in reps.items()}
     for m, rep in reps.items():  # each node a ray visits: one 64-byte record, 2 sectors, for the whole warp
-        assert rep.tally[mt.S_NODE, 0] * 32 == 2 * rep.work["inner_nodes"].sum(), m
+        assert rep.tally[ms.S_NODE, 0] * 32 == 2 * rep.work["inner_nodes"].sum(), m
         assert rows[m].simd_efficiency == 1.0
         assert rows[m].node_transactions_per_ray == rows["per_ray"].node_transactions_per_ray
     assert rows["per_ray"].sort_bytes_per_ray == 0 and rows["layer_sorted"].sort_bytes_per_ray > 0
