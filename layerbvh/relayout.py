@@ -6,6 +6,7 @@ import time
 import numba
 import numpy as np
 
+from . import layout, numba_cache
 from .collapse import collapse
 from .layout import (EMPTY_BOX, EMPTY_LINK, EXIT_BIT, INSTANCE_COUNT, LEAF_COUNT, LEAF_FIRST, LEAF_UINTS, TRI_FACE,
                      TRI_FLOATS, TRI_NORMAL, TRI_VERTEX, LayerLayout, instance_link, leaf_link, node_format,
@@ -209,3 +210,6 @@ def load_builder_kernels() -> float:
     to_layer_layout(tiny, v, f, 1, 4)  # the collapse's kernel too
     _builder_kernels_loaded = True
     return time.perf_counter() - t0
+
+
+numba_cache.follow(globals(), layout)  # the record writers fold layout's slots in (numba_cache)
