@@ -21,8 +21,9 @@ TAIL_RAYS = 2048
 # ... and so does it once this share of a batch is left: the first steps, with many rays per
 # treelet, are where sorting pays (PERFORMANCE.md entry 20).
 TAIL_FRACTION = 0.25
-# ... and so does it after this many steps, however many rays are left. Each step costs ~15 ms of
-# host time (tracing the step kernel in Python, then a sync) whatever its size; a batch of typical
+# ... and so does it after this many steps, however many rays are left. Each step costs host time
+# (tracing the step kernel in Python, then a sync) whatever its size: ~15 ms when this cap was
+# chosen, ~2.5 ms since the walk's loop is traced once (PERFORMANCE.md entry 58); a batch of typical
 # rays takes 4-8 steps (1M incoherent rays on the bunny and on 600k triangles), but a tree whose
 # boxes all overlap (long thin triangles turned at random: the stability suite's slivers) took
 # ~430 steps per batch, seconds of host time for 10,000 rays. A step cap bounds that.

@@ -739,7 +739,8 @@ def copy_repository(src: Path, dst: Path) -> int:
             (dst / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(s, dst / name)
             copied += 1
-    for cache in src.glob("layerbvh/__pycache__/*.nb[ic]"):
+    # (with the digests numba_cache.follow keeps beside them: a mutated dependency drops them)
+    for cache in [*src.glob("layerbvh/__pycache__/*.nb[ic]"), *src.glob("layerbvh/__pycache__/*.follows")]:
         (dst / cache.relative_to(src)).parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(cache, dst / cache.relative_to(src))
     return copied
