@@ -521,6 +521,12 @@ MUTATIONS = (
              "        if stamp.exists() and stamp.read_text() == digest:\n",
              "        if stamp.exists():\n",
              ("tests/engine/test_numba_cache.py::test_an_edited_dependency_is_compiled_again",)),
+    Mutation("model_note_ignores_verdict", "a locality verdict's note counts the model as agreeing with valgrind "
+             "where only the ratio agrees (the verdict the other one)",
+             "plugin/tools/bench/model_checked.py",
+             'append(bool(v["ratio_agrees"] and v["verdict_agrees"]))',
+             'append(bool(v["ratio_agrees"]))',
+             ("tests/tools/test_locality.py::test_a_verdict_says_what_its_model_was_checked_against",)),
     Mutation("cachegrind_disagreement_passes", "the valgrind check exits 0 where the model's sorted / per_ray "
              "verdict is the other one (issue 57 item 5)",
              "scripts/check_model_cachegrind.py",

@@ -227,6 +227,12 @@ def test_locality_command(tmp_path):
     assert doc["checks"] and all(c["exact"] for c in doc["checks"])
     assert (out / "locality.png").stat().st_size > 10_000 and "## Verdict" in (out / "summary.md").read_text()
     assert any("cbox" in line or "camera" in line for line in doc["verdict"])
+    # Every conclusion printed says what its model was checked against (issue 57 item 5): the GPU
+    # preset's is unchecked, the CPU's checked against valgrind where the committed checks say.
+    printed = [line for line in r.stdout.splitlines() if line.startswith(("h200", "cpu"))]
+    assert len(printed) == 2 and all("[model " in line for line in printed), r.stdout
+    assert "model unchecked" in printed[0] and "checked against valgrind" in printed[1], printed
+    assert set(doc["model_checked"]) == {"h200", "cpu"} and "[model " in (out / "summary.md").read_text()
     for bad, says in ((["--preset", "nope"], "--preset: unknown 'nope'"), (["--rays", "bogus"], "--rays: unknown"),
                       (["--warp", "0"], "--warp")):
         r = _cli("locality", str(SCENES / "cbox.xml"), "--out", str(tmp_path / "x"), *bad, cwd=tmp_path)
@@ -253,3 +259,25 @@ def test_height_table_sets_sorted_against_per_ray_per_height():
     table = height_table(rows)
     assert "| shadow | 1.20×, 5.00 | 0.82×, 3.00 |" in table, table
     assert height_table([r for r in rows if r.treelet_height == 8]) == ""
+
+
+def test_a_verdict_says_what_its_model_was_checked_against(tmp_path):
+    """model_checked.note: a GPU preset's model is unchecked; a CPU preset's names where the
+    committed valgrind checks agree (ratio within tolerance and the same verdict) and where they
+    do not, counting meshes; no committed check says so."""
+    from layerbvh_mitsuba.tools.bench import model_checked as mc
+    assert mc.note("gpu", tmp_path) == mc.GPU_NOTE and "unchecked" in mc.GPU_NOTE
+    assert "no committed valgrind check" in mc.note("cpu", tmp_path)
+    v = lambda level, kib, ratio=True, verdict=True: {"level": level, "d1_kib": kib, "ratio_agrees": ratio,  # noqa: E731
+                                                     "verdict_agrees": verdict}
+    (tmp_path / "cachegrind_a.json").write_text(json.dumps(
+        {"mesh": "a.ply", "triangles": 10, "verdicts": [v("D1", 32), v("LL", 32), v("D1", 8)]}))
+    assert "DISAGREES" not in mc.note("cpu", tmp_path) and "agrees at D1 32 KiB" in mc.note("cpu", tmp_path)
+    # the ratio within tolerance, the verdict the other one: a disagreement all the same
+    (tmp_path / "cachegrind_b.json").write_text(json.dumps(
+        {"mesh": "b.ply", "triangles": 20, "verdicts": [v("D1", 32), v("LL", 32), v("D1", 8, verdict=False)]}))
+    text = mc.note("cpu", tmp_path)
+    assert "a.ply (10 triangles), b.ply (20 triangles)" in text, text
+    assert "DISAGREES at D1 8 KiB, 1 of 2 meshes agreeing" in text and "agrees at D1 32 KiB, LL beside D1 32" in text, text
+    noted = mc.with_note({"cpu": "cpu: sorting wins.", "x": "x: sorting loses."}, {"cpu": "cpu"}, tmp_path)
+    assert noted["cpu"].startswith("cpu: sorting wins. [model checked") and mc.GPU_NOTE in noted["x"]

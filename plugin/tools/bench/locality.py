@@ -31,6 +31,7 @@ from layerbvh_mitsuba import atomic
 from layerbvh_mitsuba.ab.render import load_scene
 from layerbvh_mitsuba.ab.report import json_safe
 from layerbvh_mitsuba.runtime.record import KINDS
+from layerbvh_mitsuba.tools.bench import model_checked
 from layerbvh_mitsuba.tools.bench.record_rays import cached_recording
 
 OUTPUT_MARKER = "locality.json"   # the file that makes a folder a locality output
@@ -146,6 +147,10 @@ def measure_scene(mi, req: LocalityRequest, progress: bool = True) -> dict:
         "preset_lines": list(dict.fromkeys(Preset(**{**r.preset_params, "levels": tuple(CacheLevel(**lv) for lv in
                                                      r.preset_params["levels"])}).describe() for r in run.rows)),
     })
+    # Every conclusion says what its model was checked against (issue 57 item 5).
+    kinds = {name: params.get("kind", "gpu") for name, params in doc["presets"].items()}
+    doc["model_checked"] = {name: model_checked.note(kind) for name, kind in kinds.items()}
+    doc["preset_verdict"] = model_checked.with_note(doc["preset_verdict"], kinds)
     return doc
 
 
@@ -265,7 +270,8 @@ def benchmarks_section(doc: dict, fig_rel: str) -> str:
                   + (f", each sampled to at most {info['sampled']:,}" if info.get("sampled") else "") + ". Trace "
                   + ("checked against the kernel: every ray's hit, work counts and loads of each kind equal." if exact else
                      "check FAILED on some rays: see the run's summary.md."), ""]
-        parts += [f"- {v}" for v in preset_verdict(rows).values()] + [""]
+        kinds = {r.preset: r.preset_params.get("kind", "gpu") for r in rows}
+        parts += [f"- {v}" for v in model_checked.with_note(preset_verdict(rows), kinds).values()] + [""]
         first = [r for r in rows if r.preset == rows[0].preset]
         by_height = height_table(first)
         if by_height:
