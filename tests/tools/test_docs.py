@@ -76,6 +76,9 @@ def test_the_site_builds_strict_with_every_page_and_the_cli(tmp_path):
     assert "layerbvh compare" in cli and "--grad" in cli
     assert "verdict.label" in (site / "report_json" / "index.html").read_text()
     assert "early_verdict_uncounted_pixels" in (site / "mutations" / "index.html").read_text()
+    # the engine's API reference, from its docstrings (mkdocstrings; issue 58)
+    api = (site / "api_reference" / "index.html").read_text()
+    assert "build_instanced" in api and "Build a Layer BVH over a triangle mesh" in api and "trace_inline" in api
     prb = (site / "integrators" / "prb" / "index.html").read_text()
     assert "layerbvh_prb" in prb and "test_prb.py::test_a_textured_area_emitter" in prb
 
