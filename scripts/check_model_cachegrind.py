@@ -46,7 +46,11 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))  # the checkout's layerbvh, also in the child
 
 MODES = ("per_ray", "layer_sorted", "layer_unsorted")
-WARM_RAYS = 4096  # rays past the 2N of the check, traced first in each child to load the kernels
+# Each child first traces as many rays as it measures, rays of their own past the first 2N (4N in
+# all), so that every kernel its measured call runs (a first wavefront step, the later steps, the
+# tail) is compiled or loaded before the region: with 4,096 warm rays a 2N-ray call took steps the
+# warm-up had not, and compiled their kernel inside the region (measured: 324,000 instructions per
+# ray counted for layer_sorted, where the kernels were not yet in the disk cache).
 LINE = 64
 D1_WAYS, LL_WAYS = 8, 16
 SECTION = "cachegrind"  # BENCHMARKS.md's markers around the section
@@ -95,11 +99,11 @@ def child(work: Path, n: int, modes: list[str], out: Path) -> None:
         res, _ = wavefront.trace(m, dev, batch, mode=mode, any_hit=False, count_work=False, **tail)
         dr.eval(res.t, res.prim)
         return res
-    # One trace per mode on rays of their own first: it compiles (once, into Dr.Jit's cache: the
+    # One trace per mode on as many rays of their own first: it compiles (once, into Dr.Jit's cache: the
     # kernels cached for the host do not apply under valgrind's CPU) or loads every kernel of
     # the mode, still uninstrumented. Then the parent switches instrumentation on.
     for mode in modes:
-        trace(rays(len(r["o"]) - WARM_RAYS, len(r["o"])), mode)
+        trace(rays(len(r["o"]) - n, len(r["o"])), mode)
     dr.sync_thread()
     print("loaded", flush=True)
     sys.stdin.readline()
@@ -260,7 +264,7 @@ def check(args) -> dict:
     v, f = load_mesh(args.mesh)
     bvh = layerbvh.build(v, f, treelet_height=args.height, branching=args.branching, backend="llvm")
     n = args.rays
-    o, d = meshes.incoherent_rays(v, 2 * n + WARM_RAYS, seed=args.seed)
+    o, d = meshes.incoherent_rays(v, 4 * n, seed=args.seed)  # 2N measured, the rest warm-up
     work = Path(tempfile.mkdtemp(prefix="cachegrind-"))
     lay = bvh.layout
     np.savez(work / "layout.npz", nodes=lay.nodes, leaves=lay.leaves, tris=lay.tris, treelet_first=lay.treelet_first,
