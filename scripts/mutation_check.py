@@ -494,9 +494,8 @@ MUTATIONS = (
              "plugin/runtime/registry.py",
              '                                           "render_forward": _DRIVER["render_forward_held"],\n                                           "render_backward": _DRIVER["render_backward_held"]}\n',
              "}\n",
-             ("tests/runtime/test_prb.py::test_gradients_same_seed_as_stock[prb-cbox-layer_sorted]",
-              "tests/runtime/test_prb.py::test_primal_same_seed_as_stock[prb-bunny_box-per_ray]",
-              "tests/runtime/test_prb.py::test_gradients_same_seed_as_stock[prb-bunny_box-per_ray]")),
+             ("tests/runtime/test_held_instances.py::test_a_differentiable_render_holds_the_collector_across_forward_and_backward",
+              "tests/runtime/test_prb.py::test_gradients_same_seed_as_stock[prb-cbox-layer_sorted]")),
     Mutation("cachegrind_disturbed_run_tabulated", "the valgrind check tabulates a run whose N-ray region counted "
              "more events than its 2N-ray one (negative misses per ray)",
              "scripts/check_model_cachegrind.py",
