@@ -1,6 +1,8 @@
 """What a Dr.Jit loop reads but never changes, held out of the loop's state so that its body is traced once."""
 from __future__ import annotations
 
+import drjit as dr
+
 # Why (PERFORMANCE.md entry 58): @dr.syntax makes every name a loop body reads or writes a loop
 # state variable, and drjit 1.5.0, finding one that the body left unchanged (by index), drops it
 # and traces the whole body again ("re-recording loop ... to eliminate redundant loop state
@@ -44,3 +46,25 @@ class Held:
 
     def __len__(self):
         return len(object.__getattribute__(self, "_value"))
+
+
+def body_traces(fn) -> list[int]:
+    """Run `fn` and return, for each Dr.Jit loop it ran, how many times the loop traced its body
+    (1 when its state holds only what the body changes)."""
+    counts, original = [], dr.while_loop
+
+    def counting(state, cond, body, *args, **kwargs):
+        n = [0]
+
+        def traced(*s):
+            n[0] += 1
+            return body(*s)
+        out = original(state, cond, traced, *args, **kwargs)
+        counts.append(n[0])
+        return out
+    dr.while_loop = counting
+    try:
+        fn()
+    finally:
+        dr.while_loop = original
+    return counts

@@ -17,34 +17,25 @@ import sys
 import time
 from pathlib import Path
 
-import drjit as dr
-
-sys.path.append(str(Path(__file__).resolve().parent.parent))  # after PYTHONPATH: a "before" tree wins
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.append(str(ROOT))  # after PYTHONPATH: a "before" tree wins
 import layerbvh  # noqa: E402
 from layerbvh import meshes  # noqa: E402
 
-BUNNY = Path(__file__).resolve().parent.parent / "scenes" / "meshes" / "bunny.ply"
+
+def _this_checkouts_loopstate():
+    """layerbvh/loopstate.py of this script's checkout, loaded by path: its body_traces counts the
+    traces of any tree's walk, also one from before the module existed."""
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("bench_loopstate", ROOT / "layerbvh" / "loopstate.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
-def body_traces(fn) -> list[int]:
-    """Each Dr.Jit loop that `fn` ran: how many times it traced its body."""
-    counts, original = [], dr.while_loop
+body_traces = _this_checkouts_loopstate().body_traces
 
-    def counting(state, cond, body, *args, **kwargs):
-        n = [0]
-
-        def traced(*s):
-            n[0] += 1
-            return body(*s)
-        out = original(state, cond, traced, *args, **kwargs)
-        counts.append(n[0])
-        return out
-    dr.while_loop = counting
-    try:
-        fn()
-    finally:
-        dr.while_loop = original
-    return counts
+BUNNY = ROOT / "scenes" / "meshes" / "bunny.ply"
 
 
 def main(argv=None) -> int:

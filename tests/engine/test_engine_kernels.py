@@ -8,6 +8,7 @@ import pytest
 import layerbvh
 from layerbvh import backend as be
 from layerbvh import meshes
+from layerbvh.loopstate import body_traces
 
 
 def _launched(fn) -> set[str]:
@@ -77,27 +78,6 @@ def test_lazy_rays_are_computed_in_one_kernel(mode):
     assert len(lazy - evaluated) <= 1, f"{len(lazy - evaluated)} kernels more for lazy rays (one computes them)"
 
 
-def _body_traces(fn) -> list[int]:
-    """How many times each Dr.Jit loop that `fn` runs traced its body."""
-    counts, original = [], dr.while_loop
-
-    def counting(state, cond, body, *args, **kwargs):
-        n = [0]
-
-        def traced(*s):
-            n[0] += 1
-            return body(*s)
-        out = original(state, cond, traced, *args, **kwargs)
-        counts.append(n[0])
-        return out
-    dr.while_loop = counting
-    try:
-        fn()
-    finally:
-        dr.while_loop = original
-    return counts
-
-
 @pytest.mark.parametrize("instanced", [False, True])
 @pytest.mark.parametrize("branching", [2, 4])
 @pytest.mark.parametrize("mode", layerbvh.MODES)
@@ -117,13 +97,13 @@ def test_a_walk_traces_its_loop_once(mode, branching, instanced, bunny):
         bvh = layerbvh.build(v, f, treelet_height=3, branching=branching)
     o, d = meshes.incoherent_rays(v, 3000, seed=1)
     for stats in (False, True):
-        counts = _body_traces(lambda: bvh.trace(o, d, mode=mode, stats=stats))
+        counts = body_traces(lambda: bvh.trace(o, d, mode=mode, stats=stats))
         assert counts and counts == [1] * len(counts), (stats, counts)
-        counts = _body_traces(lambda: bvh.occluded(o, d, mode=mode, stats=stats))
+        counts = body_traces(lambda: bvh.occluded(o, d, mode=mode, stats=stats))
         assert counts and counts == [1] * len(counts), ("occluded", stats, counts)
     if mode == "per_ray":
         F = bvh.m.Float
-        counts = _body_traces(lambda: dr.eval(bvh.trace_inline([be.from_numpy(F, np.ascontiguousarray(o[:, c]))
+        counts = body_traces(lambda: dr.eval(bvh.trace_inline([be.from_numpy(F, np.ascontiguousarray(o[:, c]))
                                                                 for c in range(3)],
                                                                [be.from_numpy(F, np.ascontiguousarray(d[:, c]))
                                                                 for c in range(3)], F(np.inf), bvh.m.Bool(True)).t))
