@@ -22,11 +22,12 @@ needs_valgrind = pytest.mark.skipif(
            "fresh clone, outside the suite's time budget); bench_all.sh runs the full check")
 
 
-def check_exit_disagrees() -> int:
+def _check_module():
+    """scripts/check_model_cachegrind.py loaded as a module (a fresh copy per call)."""
     spec = importlib.util.spec_from_file_location("check_model_cachegrind", ROOT / "scripts" / "check_model_cachegrind.py")
     check = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(check)
-    return check.DISAGREES_EXIT
+    return check
 
 
 @needs_valgrind
@@ -44,7 +45,7 @@ def test_the_model_misses_what_valgrind_misses_on_the_per_ray_kernel(tmp_path):
     # instructions per ray against per_ray's 2,700). At bench_all.sh's 20,000 rays they agree at
     # D1 32 KiB (0.72 against 0.72; docs/bench/cachegrind_bunny.json), and bench_all.sh fails
     # where they do not (issue 57 item 5).
-    assert run.returncode in (0, check_exit_disagrees()), run.stderr[-2000:]
+    assert run.returncode in (0, _check_module().DISAGREES_EXIT), run.stderr[-2000:]
     doc = json.loads(out.read_text())
     rows = {(r["mode"], r["level"]): r for r in doc["rows"]}
     assert set(rows) == {(m, lv) for m in ("per_ray", "layer_sorted") for lv in ("D1", "LL")}
@@ -74,9 +75,7 @@ def test_a_disturbed_measurement_is_refused():
     """Events per ray are the 2N-ray region's less the N-ray one's; more events for N rays than for
     2N means something else ran in the N-ray region (seen once: -430 read misses per ray), and the
     check must stop instead of tabulating it."""
-    spec = importlib.util.spec_from_file_location("check_model_cachegrind", ROOT / "scripts" / "check_model_cachegrind.py")
-    check = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(check)
+    check = _check_module()
     a = {"D1mr": 100, "DLmr": 50, "D1mw": 10, "Ir": 1000}
     b = {"D1mr": 300, "DLmr": 90, "D1mw": 30, "Ir": 3000}
     assert check.region_difference(a, b, 10, "x") == {"D1": 20, "LL": 4, "D1_writes": 2, "instructions": 200}
@@ -87,9 +86,7 @@ def test_a_disturbed_measurement_is_refused():
 def test_a_disturbed_measurement_is_measured_again():
     """Issue 56: under load the check once stopped on a disturbed measurement, then passed on a
     rerun. It measures a disturbed (D1, N) pair again, at most ATTEMPTS times, before it stops."""
-    spec = importlib.util.spec_from_file_location("check_model_cachegrind", ROOT / "scripts" / "check_model_cachegrind.py")
-    check = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(check)
+    check = _check_module()
     calls = []
 
     def disturbed_once(*args):
@@ -114,9 +111,7 @@ def test_a_disturbed_measurement_is_measured_again():
 def test_a_disagreement_with_valgrind_fails_the_check(capsys):
     """Issue 57 item 5: the check exits non-zero, naming where, when the model's sorted / per_ray
     ratio is beyond the tolerance or its verdict is the other one, at any D1 size or level."""
-    spec = importlib.util.spec_from_file_location("check_model_cachegrind", ROOT / "scripts" / "check_model_cachegrind.py")
-    check = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(check)
+    check = _check_module()
     agree = {"d1_kib": 32, "level": "D1", "ratio_agrees": True, "verdict_agrees": True}
     assert check.disagreement([agree, {**agree, "level": "LL"}]) == 0
     assert capsys.readouterr().err == ""
