@@ -279,5 +279,5 @@ def test_a_verdict_says_what_its_model_was_checked_against(tmp_path):
     text = mc.note("cpu", tmp_path)
     assert "a.ply (10 triangles), b.ply (20 triangles)" in text, text
     assert "DISAGREES at D1 8 KiB, 1 of 2 meshes agreeing" in text and "agrees at D1 32 KiB, LL beside D1 32" in text, text
-    noted = mc.with_note({"cpu": "cpu: sorting wins.", "x": "x: sorting loses."}, {"cpu": "cpu"}, tmp_path)
+    noted = mc.with_note({"cpu": "cpu: sorting wins.", "x": "x: sorting loses."}, mc.notes({"cpu": "cpu"}, tmp_path))
     assert noted["cpu"].startswith("cpu: sorting wins. [model checked") and mc.GPU_NOTE in noted["x"]

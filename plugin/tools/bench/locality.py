@@ -149,8 +149,8 @@ def measure_scene(mi, req: LocalityRequest, progress: bool = True) -> dict:
     })
     # Every conclusion says what its model was checked against (issue 57 item 5).
     kinds = {name: params.get("kind", "gpu") for name, params in doc["presets"].items()}
-    doc["model_checked"] = {name: model_checked.note(kind) for name, kind in kinds.items()}
-    doc["preset_verdict"] = model_checked.with_note(doc["preset_verdict"], kinds)
+    doc["model_checked"] = model_checked.notes(kinds)
+    doc["preset_verdict"] = model_checked.with_note(doc["preset_verdict"], doc["model_checked"])
     return doc
 
 
@@ -270,8 +270,8 @@ def benchmarks_section(doc: dict, fig_rel: str) -> str:
                   + (f", each sampled to at most {info['sampled']:,}" if info.get("sampled") else "") + ". Trace "
                   + ("checked against the kernel: every ray's hit, work counts and loads of each kind equal." if exact else
                      "check FAILED on some rays: see the run's summary.md."), ""]
-        kinds = {r.preset: r.preset_params.get("kind", "gpu") for r in rows}
-        parts += [f"- {v}" for v in model_checked.with_note(preset_verdict(rows), kinds).values()] + [""]
+        checked = model_checked.notes({r.preset: r.preset_params.get("kind", "gpu") for r in rows})
+        parts += [f"- {v}" for v in model_checked.with_note(preset_verdict(rows), checked).values()] + [""]
         first = [r for r in rows if r.preset == rows[0].preset]
         by_height = height_table(first)
         if by_height:

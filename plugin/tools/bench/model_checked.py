@@ -50,7 +50,13 @@ def note(kind: str, folder: Path = CHECKS) -> str:
             + " (BENCHMARKS.md)")
 
 
-def with_note(verdicts: dict, kinds: dict, folder: Path = CHECKS) -> dict:
-    """Each preset's verdict sentence with what its model was checked against (`kinds`: the
-    preset's kind by name; a preset not there counts as unchecked)."""
-    return {name: f"{line} [{note(kinds.get(name, 'gpu'), folder)}]" for name, line in verdicts.items()}
+def notes(kinds: dict, folder: Path = CHECKS) -> dict:
+    """Each preset's note (`kinds`: its kind by name), each kind's worked out once."""
+    by_kind = {kind: note(kind, folder) for kind in set(kinds.values())}
+    return {name: by_kind[kind] for name, kind in kinds.items()}
+
+
+def with_note(verdicts: dict, preset_notes: dict) -> dict:
+    """Each preset's verdict sentence with its note (`preset_notes`, from `notes`); a preset
+    without one counts as unchecked."""
+    return {name: f"{line} [{preset_notes.get(name, GPU_NOTE)}]" for name, line in verdicts.items()}
