@@ -11,7 +11,9 @@ import numpy as np
 from . import memsites as ms, memtrace as mt
 from .bvh import build
 from .inputs import DEFAULT_BRANCHING, DEFAULT_TREELET_HEIGHT
+from .cachesim import C_WRITE_MISSES
 from .layout import LayerLayout, node_format, treelet_levels
+from .locality_verdict import _groups, _ratio, at_headline, headline_config, preset_verdict, verdict  # noqa: F401
 from .memmodel import Caches, Preset, preset as named_preset, with_segment
 from .state import COMPACT_RECORD_WORDS, MISS, StateRecords
 from .steptraffic import limits, result_traffic, sort_traffic
@@ -49,6 +51,8 @@ class ReplayResult:
     carried: int = 0                # rays summed over the wavefront steps they went on from (a state record each)
     result_bytes: int = 0           # bytes written to the results (steptraffic.result_traffic)
     loads: dict = None              # per ray and load kind (memtrace.LOAD_KINDS): the loads fed to the cache model
+    write_misses: tuple = ()        # per level: the replay's stores (memsites.STORE_SITES) that missed it
+    write_back_bytes: int = 0       # dirty lines the last level wrote back into DRAM, in bytes
 
 
 def _regions(sizes: dict) -> dict:
@@ -137,7 +141,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     prev_pos[order] = np.arange(n)  # (the first step reads the records in order)
 
     caches = Caches(preset)
-    tags, stamps, params, counts, clock = caches.arrays
+    tags, stamps, dirty, params, counts, clock = caches.arrays
     n_levels = len(preset.levels)
     tally = np.zeros((ms.SITES, 2), np.int64)
     levels_hit = np.zeros((ms.SITES, n_levels + 1), np.int64)
@@ -146,7 +150,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     views = (nodes_f, nodes_u, tris_f, tris_u, tris_d, tf, nt)
     state = (fst, ist, loc_link, loc_t, g_link, g_t)
     sites = (site_base, site_bytes, site_local, start_sites, start_by, prev_pos, preset.segment_bytes)
-    model = (tags, stamps, params, counts, clock, tally, levels_hit, lanes, loads)
+    model = (tags, stamps, dirty, params, counts, clock, tally, levels_hit, lanes, loads)
     net = np.array(SORT_NETWORKS.get(lay.branching, ()), np.int64).reshape(-1, 2)
 
     def launch(rays, bounded, use_global, cap):
@@ -187,7 +191,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
             n_active -= done
 
     # Every transaction reached L1 once: a cache_access that refused its input (-1) would not count.
-    assert counts[0].sum() == tally[:, 0].sum() == levels_hit.sum(), "the cache model lost transactions"
+    assert counts[0, :2].sum() == tally[:, 0].sum() == levels_hit.sum(), "the cache model lost transactions"
     prim = np.full(n_all, MISS, np.int64)
     t = np.full(n_all, np.inf, np.float32)
     prim[valid] = ist[valid, ms.I_PRIM]
@@ -210,7 +214,9 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
                         levels_hit=levels_hit, warp_iterations=int(lanes[0]), lane_iterations=int(lanes[1]),
                         kernels=kernels, sort_bytes=sort_bytes, ray_steps=ray_steps,
                         pushed=int(lanes[2]), carried=carried, seconds=time.perf_counter() - t0,
-                        result_bytes=result_traffic(not layer, n, int(work["hits_written"].sum())))
+                        result_bytes=result_traffic(not layer, n, int(work["hits_written"].sum())),
+                        write_misses=tuple(int(x) for x in counts[:-1, C_WRITE_MISSES]),
+                        write_back_bytes=caches.dram_write_bytes())
 
 
 # -- one row of numbers ------------------------------------------------------------------------------
@@ -247,7 +253,7 @@ class LocalityRow:
     node_dram_bytes_per_ray: float
     triangle_dram_bytes_per_ray: float
     sort_bytes_per_ray: float
-    total_dram_bytes_per_ray: float     # dram + sort + result: what the mode costs the memory bus
+    total_dram_bytes_per_ray: float     # dram + write-backs + sort + result: what the mode costs the memory bus
     branching: int = 2                  # children per node of the replayed tree
     result_bytes_per_ray: float = 0.0   # hits written to the results (steptraffic.result_traffic)
     steps_per_ray: float = 0.0          # kernel calls a ray took part in (wavefront steps and the tail)
@@ -260,6 +266,8 @@ class LocalityRow:
     sampled_from: int | None = None     # rays the kind had before sampling (None: not sampled)
     seconds: float = 0.0
     trace_exact: bool | None = None     # the trace matched the kernel on every ray (None: not checked)
+    l1_write_misses_per_ray: float = 0.0  # the kernels' stores (local entry stack) that missed L1
+    write_back_bytes_per_ray: float = 0.0  # dirty lines written back into DRAM (in total_dram_bytes_per_ray)
     preset_params: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
@@ -303,13 +311,14 @@ def row(kind: str, rep: ReplayResult, treelet_height: int, sampled_from: int | N
         dram_bytes_per_ray=dram(range(ms.SITES)),
         node_dram_bytes_per_ray=dram(ms.CATEGORY["node"]), triangle_dram_bytes_per_ray=dram(ms.CATEGORY["triangle"]),
         sort_bytes_per_ray=rep.sort_bytes / n,
-        total_dram_bytes_per_ray=dram(range(ms.SITES)) + (rep.sort_bytes + rep.result_bytes) / n,
+        total_dram_bytes_per_ray=dram(range(ms.SITES)) + (rep.write_back_bytes + rep.sort_bytes + rep.result_bytes) / n,
         branching=rep.branching, result_bytes_per_ray=rep.result_bytes / n, steps_per_ray=float(rep.work["steps"].sum()) / n,
         sort_bytes_per_ray_step=rep.sort_bytes / rep.ray_steps if rep.ray_steps else 0.0,
         pushed_per_ray_step=rep.pushed / rep.ray_steps if rep.ray_steps else 0.0,
         carried_per_ray_step=rep.carried / rep.ray_steps if rep.ray_steps else 0.0,
         sampled_from=sampled_from, seconds=rep.seconds, trace_exact=None if check is None else check.exact,
-        preset_params=rep.preset.as_dict())
+        preset_params=rep.preset.as_dict(), l1_write_misses_per_ray=rep.write_misses[0] / n if rep.write_misses else 0.0,
+        write_back_bytes_per_ray=rep.write_back_bytes / n)
 
 
 def sample_rays(o, d, tmax, limit: int | None, seed: int = 0):
@@ -336,92 +345,6 @@ class LocalitySettings:
     threads: int | None = None      # replays run at once (numba releases the GIL); None: the CPU count
     segments: tuple | None = None   # transaction sizes in bytes (memmodel.with_segment); None: each preset's own
     branching: int = DEFAULT_BRANCHING  # children per node of the tree replayed (a render's default)
-
-
-def _ratio(a: float, b: float) -> float:
-    return a / b if b else float("nan")
-
-
-def verdict(rows: list[LocalityRow]) -> list[str]:
-    """One sentence per (kind, preset, warp, treelet height): what sorting does to the traversal's
-    node and triangle traffic (the paper's claim), to all of its kernels' DRAM traffic, and to the
-    memory bus once the steps' own traffic is paid."""
-    out = []
-    for (kind, pre, warp, h, k), g in _groups(rows, lambda r: (r.kind, r.preset, r.warp, r.treelet_height,
-                                                                r.branching)).items():
-        if "per_ray" not in g or "layer_sorted" not in g:
-            continue
-        p, s = g["per_ray"], g["layer_sorted"]
-        nt = _ratio(s.node_dram_bytes_per_ray + s.triangle_dram_bytes_per_ray,
-                    p.node_dram_bytes_per_ray + p.triangle_dram_bytes_per_ray)
-        out.append(
-            f"{kind}, {pre}, W={warp}, H={h}, K={k}: sorted steps issue {_ratio(s.node_transactions_per_ray, p.node_transactions_per_ray):.2f}x "
-            f"per_ray's node transactions (SIMD efficiency {s.simd_efficiency:.2f} vs {p.simd_efficiency:.2f}) and read "
-            f"{nt:.2f}x its node and triangle bytes from DRAM; all kernel reads {_ratio(s.dram_bytes_per_ray, p.dram_bytes_per_ray):.2f}x, "
-            f"with the {s.sort_bytes_per_ray:.0f} B/ray moved between steps "
-            f"and the hits written {_ratio(s.total_dram_bytes_per_ray, p.total_dram_bytes_per_ray):.2f}x: sorting "
-            + ("wins on memory traffic" if s.total_dram_bytes_per_ray < p.total_dram_bytes_per_ray
-               else "does not pay for itself in memory traffic")
-            + (f" (per ray and step it moves {s.sort_bytes_per_ray_step:.0f} B; break-even "
-               f"{s.break_even_bytes_per_ray_step:.0f} B, lower bound {s.lower_bound_bytes_per_ray_step:.0f} B)."
-               if s.break_even_bytes_per_ray_step is not None else "."))
-    return out
-
-
-def headline_config(rows: list[LocalityRow]) -> tuple:
-    """(warp, treelet height, branching) a preset's one-sentence verdict and tables use: its first
-    warp width in `rows`, and the default treelet height and branching if they were measured, else
-    the first."""
-    heights, ks = [r.treelet_height for r in rows], [r.branching for r in rows]
-    return (rows[0].warp, DEFAULT_TREELET_HEIGHT if DEFAULT_TREELET_HEIGHT in heights else heights[0],
-            DEFAULT_BRANCHING if DEFAULT_BRANCHING in ks else ks[0])
-
-
-def at_headline(rows: list[LocalityRow]) -> list[LocalityRow]:
-    """The rows of headline_config (one preset's rows)."""
-    warp, h, k = headline_config(rows)
-    return [r for r in rows if (r.warp, r.treelet_height, r.branching) == (warp, h, k)]
-
-
-def preset_verdict(rows: list[LocalityRow]) -> dict:
-    """One sentence per preset over every kind of rays (at headline_config): the verdict
-    BENCHMARKS.md states per scene and preset."""
-    out = {}
-    for pre in dict.fromkeys(r.preset for r in rows):
-        mine = [r for r in rows if r.preset == pre]
-        warp, h, k = headline_config(mine)
-        kinds = _groups(at_headline(mine), lambda r: r.kind)
-        nt, tot = {}, {}
-        for kind, g in kinds.items():
-            if "per_ray" in g and "layer_sorted" in g:
-                p, s = g["per_ray"], g["layer_sorted"]
-                nt[kind] = _ratio(s.node_dram_bytes_per_ray + s.triangle_dram_bytes_per_ray,
-                                  p.node_dram_bytes_per_ray + p.triangle_dram_bytes_per_ray)
-                tot[kind] = _ratio(s.total_dram_bytes_per_ray, p.total_dram_bytes_per_ray)
-        if not nt:
-            continue
-        gain = [k for k, v in nt.items() if v < 0.9]
-        wins = [k for k, v in tot.items() if v < 1.0]
-        def span(d):
-            lo, hi = min(d.values()), max(d.values())
-            return f"{lo:.2f}x" if f"{lo:.2f}" == f"{hi:.2f}" else f"{lo:.2f}-{hi:.2f}x"
-        out[pre] = (
-            f"{pre} (W={warp}, H={h}, K={k}): sorting "
-            + (f"cuts the node and triangle bytes read from DRAM on {', '.join(f'{k} ({nt[k]:.2f}x)' for k in gain)}"
-               if gain else f"does not cut the node and triangle bytes read from DRAM ({span(nt)} of per_ray's)")
-            + f"; counting the ray state, entry stacks, the traffic between steps and the hits written, the sorted path moves "
-              f"{span(tot)} per_ray's DRAM bytes, so "
-            + (f"it wins on memory traffic for {', '.join(wins)}." if wins else
-               "it does not pay for itself in memory traffic on any kind of rays."))
-    return out
-
-
-def _groups(rows, key) -> dict:
-    """rows grouped by key(row), each group {mode: row}."""
-    groups: dict = {}
-    for r in rows:
-        groups.setdefault(key(r), {})[r.mode] = r
-    return groups
 
 
 @dataclass

@@ -12,17 +12,14 @@ import re
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import numba
 import numpy as np
 
 KIB = 1024
 MIB = 1024 * KIB
 
-# Columns of Caches.arrays' params; one row per level.
-PARAM_COLUMNS = 6
-P_SETS, P_WAYS, P_LINE, P_SHARED, P_OFFSET, P_INSTANCES = range(PARAM_COLUMNS)
-
-EMPTY_TAG = -1  # line numbers are >= 0 because addresses are
+from .cachesim import (C_HITS, C_MISSES, C_WRITE_BACKS, C_WRITE_MISSES, COUNT_COLUMNS, EMPTY_TAG,  # noqa: F401
+                       P_INSTANCES, P_LINE, P_OFFSET, P_SETS, P_SHARED, P_WAYS, PARAM_COLUMNS, cache_access,
+                       coalesce, flush_private_levels)
 
 # NVIDIA caches allocate and move 32-byte sectors (L1 lines and L2 lines are 128 bytes of four
 # sectors, each with its own valid bit, and a miss fetches only the sectors it needs). We model each
@@ -338,141 +335,47 @@ class Caches:
             offset += instances * level.sets * level.ways
         tags = np.full(offset, EMPTY_TAG, dtype=np.int64)
         stamps = np.zeros(offset, dtype=np.int64)
-        counts = np.zeros((len(levels) + 1, 2), dtype=np.int64)
+        dirty = np.zeros(offset, dtype=np.int8)
+        counts = np.zeros((len(levels) + 1, COUNT_COLUMNS), dtype=np.int64)
         clock = np.zeros(1, dtype=np.int64)
-        self.arrays = (tags, stamps, params, counts, clock)
+        # (cache_access's leading arguments, in its order: `cache_access(*caches.arrays, unit, addr, write)`)
+        self.arrays = (tags, stamps, dirty, params, counts, clock)
+
+    @property
+    def counts(self) -> np.ndarray:
+        """Per level, then DRAM: hits, misses, write misses, write-backs (cachesim's C_* columns)."""
+        return self.arrays[4]
 
     def reset(self) -> None:
-        tags, stamps, _, counts, clock = self.arrays
+        tags, stamps, dirty, _, counts, clock = self.arrays
         tags.fill(EMPTY_TAG)
         stamps.fill(0)
+        dirty.fill(0)
         counts.fill(0)
         clock[0] = 0
 
     def flush_private(self) -> None:
-        tags, _, params, _, _ = self.arrays
-        flush_private_levels(tags, params)
+        tags, _, dirty, params, counts, _ = self.arrays
+        flush_private_levels(tags, dirty, params, counts)
 
     def hit_rates(self) -> list[float]:
-        counts = self.arrays[3]
         rates = []
-        for hits, misses in counts[:-1]:
+        for hits, misses in self.counts[:-1, :C_WRITE_MISSES]:
             total = hits + misses
             rates.append(float(hits / total) if total else 0.0)
         return rates
 
     def bytes_below(self) -> list[int]:
-        _, _, params, counts, _ = self.arrays
-        return [int(counts[k, 1] * params[k, P_LINE]) for k in range(len(params))]
+        """Bytes each level fetched from below (its misses, loads and stores alike: a store's miss
+        fetches its line)."""
+        params = self.arrays[3]
+        return [int(self.counts[k, C_MISSES] * params[k, P_LINE]) for k in range(len(params))]
 
+    def bytes_written_below(self) -> list[int]:
+        """Bytes each level wrote back to the levels below (its dirty lines evicted or flushed)."""
+        params = self.arrays[3]
+        return [int(self.counts[k, C_WRITE_BACKS] * params[k, P_LINE]) for k in range(len(params))]
 
-# This function's shape is tuned by measurement (20-25 ns per L1 hit, against 30-50 ns for
-# equivalent code): numba passes each array as ~7 scalars, so a call that LLVM does not inline costs
-# ~15 ns, and it inlines only a small body with few exits; a raise, an extra return or a break out of
-# the level loop each tipped it over. Reference counting is off (_nrt=False: nothing here allocates)
-# because numba's pruning of the per-argument atomic incref/decref pairs failed for most shapes.
-# Hence: invalid input returns -1 rather than raising, one merged scan of the set, and the hit
-# returns from inside it. (Dropping the input check entirely would save another ~10 ns.)
-@numba.njit(cache=True, _nrt=False)
-def cache_access(tags, stamps, params, counts, clock, unit, addr):
-    """One access to byte address `addr` by unit `unit` (an SM or core): looks it up level by level
-    (each level uses its own line = addr // line_bytes, its own set index = line % sets, LRU within
-    the set, instance = unit if the level is private else 0), counts hits/misses per level, fills
-    every level that missed (inclusive fill, LRU victim), and returns the index of the level that
-    held it (len(levels) = DRAM). A negative address, or a unit outside [0, units) while the
-    nearest level is private, returns -1 and counts nothing."""
-    nlevels = params.shape[0]
-    # Caches puts private levels first, each with one instance per unit, so level 0 bounds `unit`.
-    if addr < 0 or (params[0, P_SHARED] == 0 and (unit < 0 or unit >= params[0, P_INSTANCES])):
-        nlevels = -1
-    clock[0] += 1
-    now = clock[0]
-    for k in range(max(nlevels, 0)):
-        sets = params[k, P_SETS]
-        ways = params[k, P_WAYS]
-        line = _line_of(addr, params[k, P_LINE])
-        instance = unit if params[k, P_SHARED] == 0 else 0
-        base = params[k, P_OFFSET] + (instance * sets + _set_of(line, sets)) * ways
-        empty = -1
-        victim = base
-        oldest = stamps[base]
-        for i in range(base, base + ways):
-            tag = tags[i]
-            if tag == line:
-                stamps[i] = now
-                counts[k, 0] += 1
-                return k
-            if tag == EMPTY_TAG:
-                if empty < 0:
-                    empty = i
-            elif stamps[i] < oldest:
-                oldest = stamps[i]
-                victim = i
-        counts[k, 1] += 1
-        if empty >= 0:
-            victim = empty
-        # Filling on the way down equals filling after the lower levels answered: each level has
-        # its own tag array.
-        tags[victim] = line
-        stamps[victim] = now
-    if nlevels >= 0:
-        counts[nlevels, 0] += 1
-    return nlevels
-
-
-@numba.njit(cache=True, inline="always")
-def _line_of(addr, line_bytes):
-    """addr // line_bytes for addr >= 0. numba's signed // is two hardware divisions plus a sign
-    fix-up and dominated an access; line and segment sizes are powers of two in practice."""
-    if line_bytes & (line_bytes - 1) == 0:
-        shift = 0
-        while (1 << shift) < line_bytes:
-            shift += 1
-        return addr >> shift
-    return np.int64(np.uint64(addr) // np.uint64(line_bytes))
-
-
-@numba.njit(cache=True, inline="always")
-def _set_of(line, sets):
-    if sets & (sets - 1) == 0:
-        return line & (sets - 1)
-    return np.int64(np.uint64(line) % np.uint64(sets))
-
-
-@numba.njit(cache=True)
-def flush_private_levels(tags, params):
-    for k in range(params.shape[0]):
-        if params[k, P_SHARED] == 0:
-            start = params[k, P_OFFSET]
-            end = start + params[k, P_INSTANCES] * params[k, P_SETS] * params[k, P_WAYS]
-            tags[start:end] = EMPTY_TAG
-
-
-@numba.njit(cache=True, _nrt=False)
-def coalesce(addrs, active, n, size_bytes, seg_bytes, out):
-    """Distinct segments (segment id = byte address // seg_bytes) touched by the byte ranges
-    [addrs[i], addrs[i] + size_bytes) of the first n lanes where active[i] (an address < 0 also
-    means no request); writes the segment ids to out in ascending order (out needs
-    n * (size_bytes // seg_bytes + 2) entries) and returns how many. This is the coalescing model:
-    one load instruction of a warp issues one memory transaction per distinct segment.
-    size_bytes or seg_bytes < 1 returns -1."""
-    if size_bytes < 1 or seg_bytes < 1:
-        return -1
-    count = 0
-    for i in range(n):
-        a = addrs[i]
-        if not active[i] or a < 0:
-            continue
-        for s in range(_line_of(a, seg_bytes), _line_of(a + size_bytes - 1, seg_bytes) + 1):
-            # Insertion into the sorted distinct list: a warp's segments arrive nearly sorted
-            # when it coalesces well, and there are at most a few dozen when it does not.
-            j = count
-            while j > 0 and out[j - 1] > s:
-                j -= 1
-            if j > 0 and out[j - 1] == s:
-                continue
-            for m in range(count, j, -1):
-                out[m] = out[m - 1]
-            out[j] = s
-            count += 1
-    return count
+    def dram_write_bytes(self) -> int:
+        """Bytes written back into DRAM (dirty lines no cache level below their own held)."""
+        return int(self.counts[-1, C_WRITE_BACKS] * self.arrays[3][-1, P_LINE])

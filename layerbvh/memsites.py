@@ -41,7 +41,9 @@ SITE_NAMES = ("triangle", "local_read_link", "local_read_t", "stack_link", "stac
 # What each site is, for the per-kind breakdown of transactions and traffic.
 CATEGORY = {"node": (S_NODE, S_NODE_TRELET, S_TF), "triangle": (S_TRI,), "stack": (S_STACK_LINK, S_STACK_T),
             "local": (S_LOC_R_LINK, S_LOC_R_T, S_LOC_W_LINK, S_LOC_W_T) + tuple(range(S_PUSH, S_START))}
-# ... and the start sites are "ray".
+# ... and the start sites are "ray". The local write sites are the replay's stores (the cache
+# model's write-allocate and write-back, cachesim.py); every other site loads.
+STORE_SITES = (S_LOC_W_LINK, S_LOC_W_T) + tuple(range(S_PUSH, S_START))
 # The kernel's loads by kind: the replay's load sites of each, and the work counter the kernel
 # keeps of it (state.WORK); besides these, each kernel a ray takes part in ("steps") loads its ray
 # (and in a wavefront step its state record) once.

@@ -23,13 +23,13 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from . import geometry, layout, memmodel, memsites, numba_cache
+from . import cachesim, geometry, layout, memsites, numba_cache
 from .layout import TRI_FACE
-from .memmodel import cache_access, coalesce
+from .cachesim import cache_access, coalesce
 from .memsites import (BY_LANE, BY_LINK_NODE, BY_SLOT, F_D, F_INV, F_O, F_SX, F_SY, F_SZ, F_T, F_U, F_V, I_ACTIVE,
                        I_DONE, I_HITS, I_HITW, I_INNER, I_ITER, I_KX, I_KY, I_KZ, I_LEAF, I_LINK, I_NEXT, I_NL,
                        I_PRIM, I_SP, I_SPILL, I_STEPS, I_TRELET, I_TRI, I_TRI_CUR, I_TRI_END, MAX_PUSH, NO_READ,
-                       SITES, S_LOC_R_LINK, S_LOC_R_T, S_LOC_W_LINK, S_LOC_W_T, S_NODE, S_NODE_TRELET, S_PUSH,
+                       SITES, STORE_SITES, S_LOC_R_LINK, S_LOC_R_T, S_LOC_W_LINK, S_LOC_W_T, S_NODE, S_NODE_TRELET, S_PUSH,
                        S_STACK_LINK, S_STACK_T, S_START, S_TF, S_TRI, _EDGE, _EXIT, _FAR, _FAR_COORD, _FAR_UNIT,
                        _FIRST, _FLT_MAX, _HI0, _HI1, _LEAF, _LK0, _LK1, _LO0, _LO1, _MIN_RCP, _NRM, _PAYLOAD, _POP,
                        _SHIFT, _V0, _V1, _V2)
@@ -370,7 +370,7 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
                nodes_f, nodes_u, tris_f, tris_u, tris_d, treelet_first, node_treelet,
                fst, ist, loc_link, loc_t, g_link, g_t,
                site_base, site_bytes, site_local, start_sites, start_by_pos, prev_pos, seg_bytes,
-               tags, stamps, params, counts, clock, tally, levels_hit, lanes_out, loads):
+               tags, stamps, dirty, params, counts, clock, tally, levels_hit, lanes_out, loads):
     """One kernel launch over the rays `order` (slots, in the launch's order), lane j in warp j // W.
 
     Warps go to units (SMs, cores) a block of `block_warps` at a time, round-robin; each unit keeps
@@ -469,12 +469,13 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
                     if n_req == 0:
                         continue
                     tally[k, 1] += n_req
-                    m = coalesce(addr, every, n_req, size, seg_bytes, segs)
+                    m, store = coalesce(addr, every, n_req, size, seg_bytes, segs), k in STORE_SITES
                     tally[k, 0] += m
                     for i in range(m):
                         # cache_access answers -1 only for a negative address or a unit out of range,
                         # which this loop never makes; replay() checks the counts add up.
-                        lvl = cache_access(tags, stamps, params, counts, clock, u, segs[i] * seg_bytes)
+                        lvl = cache_access(tags, stamps, dirty, params, counts, clock, u, segs[i] * seg_bytes,
+                                           store)
                         levels_hit[k, min(lvl, n_levels)] += 1
                 still = going > 0
                 if not still:
@@ -496,4 +497,4 @@ def next_treelets(order, ist, finished):
     return keys
 
 
-numba_cache.follow(globals(), memmodel, memsites, layout, geometry)  # what the replay compiles in (numba_cache)
+numba_cache.follow(globals(), cachesim, memsites, layout, geometry)  # what the replay compiles in (numba_cache)

@@ -10,7 +10,7 @@ import numba
 from numba.core.caching import FunctionCache
 
 # Numba keys a cached function on its own source file alone. A function that inlines another
-# module's njit function (memtrace's replay compiles memmodel's cache_access into itself) or folds
+# module's njit function (memtrace's replay compiles cachesim's cache_access into itself) or folds
 # another module's constants (memsites' load sites, layout's bit fields) kept the old code after
 # that module was edited, until someone removed layerbvh/__pycache__/*.nb* by hand. `follow` keeps
 # a digest of those modules' sources beside the cache and drops the cache when it differs.

@@ -58,13 +58,14 @@ SECTION = "cachegrind"  # BENCHMARKS.md's markers around the section
 RATIO_TOLERANCE, ABSOLUTE_TOLERANCE = 0.15, 0.30
 DISAGREES_EXIT = 3  # (1: a disturbed measurement, 2: no valgrind)
 BLIND_SPOTS = (
-    "The model simulates the traversal kernels' loads only: the kernels' stores (state records, hits, "
-    "the entries a ray holds at a step's end), the counting sort and the host's work between steps "
-    "are not in its misses (the layer modes' `sort_bytes` and `result_bytes` stand for them "
-    "elsewhere); valgrind counts every read the trace call "
-    "makes. Valgrind's own simplifications: an inclusive LL, LRU everywhere, no prefetching, no "
-    "TLB, and one cache for all threads (the children run one Dr.Jit thread). Misses are read "
-    "misses (D1mr, DLmr) against the model's transactions that miss L1 and L2.")
+    "The model simulates the traversal kernels' loads and their stores to the local entry stack "
+    "(write-allocate, write-back): the kernels' other stores (state records, hits, the entries a ray "
+    "holds at a step's end), the counting sort and the host's work between steps are not in its "
+    "misses (the layer modes' `sort_bytes` and `result_bytes` stand for them elsewhere); valgrind "
+    "counts every read and write the trace call makes. Valgrind's own simplifications: an inclusive "
+    "LL, LRU everywhere, no prefetching, no TLB, and one cache for all threads (the children run one "
+    "Dr.Jit thread). Read misses (D1mr, DLmr) are held against the model's loads that miss L1 and "
+    "L2, write misses (D1mw, DLmw) against its stores that do.")
 
 
 # -- the child: engine only, runs under valgrind ------------------------------------------------------
@@ -164,11 +165,12 @@ def read_callgrind(path: Path) -> dict:
 
 def region_difference(a: dict, b: dict, n: int, what: str) -> dict:
     """Per ray of rays n..2n: the events of the 2n-ray region `b` less those of the n-ray region
-    `a` (read misses D1, LL; D1 write misses; instructions). More events for n rays than for 2n
+    `a` (read misses D1, LL; write misses D1, LL; instructions). More events for n rays than for 2n
     means something else ran in the n-ray region (measured once: a kernel compiled there, -430 read
     misses per ray): a disturbed run, not a result, so it raises."""
     out = {"D1": (b["D1mr"] - a["D1mr"]) / n, "LL": (b["DLmr"] - a["DLmr"]) / n,
-           "D1_writes": (b["D1mw"] - a["D1mw"]) / n, "instructions": (b["Ir"] - a["Ir"]) / n}
+           "D1_writes": (b["D1mw"] - a["D1mw"]) / n, "LL_writes": (b["DLmw"] - a["DLmw"]) / n,
+           "instructions": (b["Ir"] - a["Ir"]) / n}
     if min(out["D1"], out["LL"], out["instructions"]) < 0:
         raise RuntimeError(f"{what}: the {n}-ray region counted more events than the {2 * n}-ray one "
                            f"(something besides the trace ran in it); run the check again")
@@ -240,13 +242,19 @@ def model_misses(bvh, o, d, n: int, mode: str, pre) -> dict:
         lh = rep.levels_hit  # [site, level]: transactions served there (last column: below the last level)
         miss_l1 = lh.sum(axis=1) - lh[:, 0]
         got[k] = (miss_l1, lh[:, -1], rep.prim, rep.sort_bytes)
+    loads = [k for k in range(ms.SITES) if k not in ms.STORE_SITES]
+    stores = list(ms.STORE_SITES)
+
+    def per_ray(level, sites):
+        return float(got[2 * n][level][sites].sum() - got[n][level][sites].sum()) / n
     parts = {"D1": {}, "LL": {}}
     for cat, sites in {**ms.CATEGORY, "ray and state records": tuple(range(ms.S_START, ms.SITES))}.items():
-        sites = list(sites)
-        parts["D1"][cat] = float(got[2 * n][0][sites].sum() - got[n][0][sites].sum()) / n
-        parts["LL"][cat] = float(got[2 * n][1][sites].sum() - got[n][1][sites].sum()) / n
-    return {"D1": float(got[2 * n][0].sum() - got[n][0].sum()) / n, "LL": float(got[2 * n][1].sum() - got[n][1].sum()) / n,
-            "parts": parts, "prim": got[2 * n][2],
+        parts["D1"][cat] = per_ray(0, [k for k in sites if k in loads])
+        parts["LL"][cat] = per_ray(1, [k for k in sites if k in loads])
+    # Read misses against valgrind's D1mr/DLmr; the replay's stores (the local entry stack) that
+    # missed, against its D1mw/DLmw.
+    return {"D1": per_ray(0, loads), "LL": per_ray(1, loads), "D1_writes": per_ray(0, stores),
+            "LL_writes": per_ray(1, stores), "parts": parts, "prim": got[2 * n][2],
             # what the model's formula (locality.sort_traffic) says the steps move between them, in lines
             "between_steps_lines": (got[2 * n][3] - got[n][3]) / n / LINE}
 
@@ -285,12 +293,14 @@ def check(args) -> dict:
             for level in ("D1", "LL"):
                 rows.append({"mode": mode, "level": level, "d1_kib": d1, "ll_kib": args.ll,
                              "model_misses_per_ray": mo[level], "cachegrind_misses_per_ray": cg[level],
-                             "cachegrind_write_misses_per_ray": cg["D1_writes"] if level == "D1" else None,
+                             "cachegrind_write_misses_per_ray": cg[f"{level}_writes"],
+                             "model_write_misses_per_ray": mo[f"{level}_writes"],
                              "instructions_per_ray": cg["instructions"], "model_parts": mo["parts"][level],
                              "model_between_steps_lines_per_ray": mo["between_steps_lines"],
                              "hits_equal": exact, "attempts": cgs["attempts"]})
             print(f"  D1 {d1:3} KiB {mode:15} read misses/ray, D1: model {mo['D1']:6.2f}, valgrind {cg['D1']:6.2f} "
-                  f"(+ {cg['D1_writes']:.2f} write misses; model's between-step estimate {mo['between_steps_lines']:.2f} lines); "
+                  f"(write misses: model {mo['D1_writes']:.2f}, valgrind {cg['D1_writes']:.2f}; model's between-step "
+                  f"estimate {mo['between_steps_lines']:.2f} lines); "
                   f"LL: model {mo['LL']:5.2f}, valgrind {cg['LL']:5.2f}; "
                   f"{cg['instructions']:.0f} instructions/ray; hits {'equal' if exact else 'DIFFER'}", flush=True)
         print(f"  ({time.perf_counter() - t0:.0f} s)", flush=True)
@@ -335,14 +345,17 @@ def section(docs: list[dict]) -> str:
         parts += [f"### {Path(doc['mesh']).name} ({doc['triangles']:,} triangles), {doc['rays']:,} rays, "
                   f"K={doc['branching']}, H={doc['treelet_height']}, {doc['lanes']} lanes", "",
                   f"`{doc['command']}`", "",
-                  "| D1 | level | mode | model read misses/ray | valgrind read misses/ray | valgrind write misses/ray | model ÷ valgrind | hits equal |",
-                  "|---|---|---|---|---|---|---|---|"]
+                  "| D1 | level | mode | model read misses/ray | valgrind read misses/ray | model ÷ valgrind | "
+                  "model write misses/ray | valgrind write misses/ray | hits equal |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+
+        def num(x):  # (a JSON written before the model had stores has no model write misses; LL none)
+            return "" if x is None else f"{x:.2f}"
         for r in doc["rows"]:
             q = r["model_misses_per_ray"] / r["cachegrind_misses_per_ray"] if r["cachegrind_misses_per_ray"] else float("nan")
             parts.append(f"| {r['d1_kib']} KiB | {r['level']} | {r['mode']} | {r['model_misses_per_ray']:.2f} | "
-                         f"{r['cachegrind_misses_per_ray']:.2f} | "
-                         f"{'' if r['cachegrind_write_misses_per_ray'] is None else format(r['cachegrind_write_misses_per_ray'], '.2f')} | {q:.2f} | "
-                         f"{'yes' if r['hits_equal'] else 'NO'} |")
+                         f"{r['cachegrind_misses_per_ray']:.2f} | {q:.2f} | {num(r.get('model_write_misses_per_ray'))} | "
+                         f"{num(r['cachegrind_write_misses_per_ray'])} | {'yes' if r['hits_equal'] else 'NO'} |")
         parts += ["", "| D1 | level | sorted ÷ per_ray, model | sorted ÷ per_ray, valgrind | ratio within ±15% | "
                   "absolute within ±30% | same verdict |", "|---|---|---|---|---|---|---|"]
         for v in doc["verdicts"]:

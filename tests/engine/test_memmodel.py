@@ -10,18 +10,19 @@ from layerbvh.memmodel import CacheLevel, Caches, Preset
 # Not cached: numba's cache of a caller does not notice changes to the functions it calls, so a
 # cached replay would keep testing an old cache_access.
 @numba.njit
-def _replay(tags, stamps, params, counts, clock, units, addrs, held):
+def _replay(tags, stamps, dirty, params, counts, clock, units, addrs, writes, held):
     for i in range(addrs.shape[0]):
-        held[i] = mm.cache_access(tags, stamps, params, counts, clock, units[i], addrs[i])
+        held[i] = mm.cache_access(tags, stamps, dirty, params, counts, clock, units[i], addrs[i], writes[i])
 
 
-def replay(caches: Caches, addrs, unit=0) -> np.ndarray:
-    """Feeds addrs (all from `unit`, or one unit per address) through the hierarchy; returns the
-    level that held each."""
+def replay(caches: Caches, addrs, unit=0, write=False) -> np.ndarray:
+    """Feeds addrs (all from `unit`, or one unit per address; loads, or stores where `write`)
+    through the hierarchy; returns the level that held each."""
     addrs = np.ascontiguousarray(addrs, dtype=np.int64)
     units = np.broadcast_to(np.asarray(unit, dtype=np.int64), addrs.shape).copy()
+    writes = np.broadcast_to(np.asarray(write, dtype=np.bool_), addrs.shape).copy()
     held = np.empty(len(addrs), dtype=np.int64)
-    _replay(*caches.arrays, units, addrs, held)
+    _replay(*caches.arrays, units, addrs, writes, held)
     return held
 
 
@@ -33,7 +34,7 @@ def hierarchy(*levels: CacheLevel, units: int = 1) -> Caches:
 
 
 def hits_misses(caches: Caches, level: int) -> tuple[int, int]:
-    hits, misses = caches.arrays[3][level]
+    hits, misses = caches.counts[level, :2]
     return int(hits), int(misses)
 
 
@@ -103,7 +104,7 @@ def test_uniform_random_reads_hit_at_capacity_over_footprint(ratio):
     c = hierarchy(CacheLevel("L1", capacity * line, ways, line, shared=False))
     rng = np.random.default_rng(12345)
     replay(c, rng.integers(0, footprint, 20 * footprint) * line)
-    c.arrays[3][:] = 0
+    c.counts[:] = 0
     reads = 2_000_000
     replay(c, rng.integers(0, footprint, reads) * line + rng.integers(0, line, reads))
     p = capacity / footprint
@@ -124,7 +125,7 @@ def test_working_set_between_l1_and_l2():
     held = replay(c, np.tile(np.arange(lines) * line, passes))
     assert hits_misses(c, 0) == (0, passes * lines)
     assert hits_misses(c, 1) == ((passes - 1) * lines, lines)
-    assert int(c.arrays[3][2, 0]) == lines  # DRAM accesses
+    assert int(c.counts[2, mm.C_HITS]) == lines  # DRAM accesses
     assert c.hit_rates() == [0.0, (passes - 1) / passes]
     assert c.bytes_below() == [passes * lines * line, lines * line]
     assert (held[:lines] == 2).all() and (held[lines:] == 1).all()
@@ -175,10 +176,62 @@ def test_flush_private_empties_l1_keeps_l2():
 
 def test_invalid_access_returns_minus_one_and_counts_nothing():
     c = two_units()
-    before = c.arrays[3].copy()
+    before = c.counts.copy()
     assert list(replay(c, [-64, 0, 0], unit=np.array([0, 2, -1]))) == [-1, -1, -1]
-    assert (c.arrays[3] == before).all()
+    assert (c.counts == before).all()
     assert (c.arrays[0] == mm.EMPTY_TAG).all()
+
+
+# --- stores: write-allocate, write-back ----------------------------------------------------------
+
+def test_a_store_allocates_its_line_and_a_dirty_victim_is_written_back_once():
+    # One set of 2 ways: store A (a write miss: the line is fetched), load B, load C evicts A (the
+    # least recently used, dirty): one write-back, into DRAM (no level below). Load A again evicts
+    # B, which is clean: nothing written. Then a store that hits (A) misses nothing.
+    c = hierarchy(CacheLevel("L1", 2 * 64, 2, 64, shared=False))
+    a, b, cc = 0, 64, 128
+    assert list(replay(c, [a], write=True)) == [1]
+    assert list(replay(c, [b, cc, a])) == [1, 1, 1]
+    assert list(replay(c, [a + 8], write=True)) == [0]
+    counts = c.counts
+    assert (counts[0, mm.C_MISSES], counts[0, mm.C_WRITE_MISSES], counts[0, mm.C_WRITE_BACKS]) == (4, 1, 1)
+    assert counts[1, mm.C_WRITE_BACKS] == 1 and c.dram_write_bytes() == 64
+    assert c.bytes_written_below() == [64]
+
+
+@pytest.mark.parametrize("write", [True, False])
+def test_a_store_stream_writes_back_every_line_the_caches_cannot_hold(write):
+    # N lines stored word by word (16 stores a line), through L1 (C1 lines) over L2 (C2 > C1):
+    # each line misses once in L1 and once in L2 (write misses: the stores fetch their lines);
+    # L1 evicts N - C1 dirty lines, each still held by L2 (C1 lines after its fill, where L2
+    # keeps C2), which marks it dirty; L2 then evicts N - C2 lines, all dirty: N - C2 lines
+    # reach DRAM. The same stream loaded writes nothing back (the control).
+    line, n = 64, 4096
+    c1, c2 = 64, 1024
+    c = hierarchy(CacheLevel("L1", c1 * line, 4, line, shared=False),
+                  CacheLevel("L2", c2 * line, 8, line, shared=True))
+    replay(c, np.arange(0, n * line, 4), write=write)
+    counts = c.counts
+    assert hits_misses(c, 0) == (15 * n, n) and hits_misses(c, 1) == (0, n)
+    stores = n if write else 0
+    assert list(counts[:2, mm.C_WRITE_MISSES]) == [stores, stores]
+    assert list(counts[:, mm.C_WRITE_BACKS]) == ([n - c1, n - c2, n - c2] if write else [0, 0, 0])
+    assert c.dram_write_bytes() == (n - c2) * line * write
+
+
+def test_a_flush_writes_the_private_dirty_lines_back_to_the_shared_level():
+    # A GPU's L1s at a kernel's end: unit 1 stores 32 lines (its L1 holds them, dirty), the flush
+    # writes all 32 back into L2, which holds them (dirty there, nothing reaches DRAM) and empties
+    # the L1; flushing again writes nothing.
+    c = two_units()
+    replay(c, np.arange(32) * 64, unit=1, write=True)
+    c.flush_private()
+    c.flush_private()
+    tags, _, dirty, params, counts, _ = c.arrays
+    l2 = slice(params[1, mm.P_OFFSET], None)
+    assert list(counts[:, mm.C_WRITE_BACKS]) == [32, 0, 0]
+    assert int(dirty[l2].sum()) == 32 and (tags[:params[1, mm.P_OFFSET]] == mm.EMPTY_TAG).all()
+    assert (replay(c, np.arange(32) * 64, unit=1) == 1).all()  # L1 refills from L2
 
 
 # --- coalescing ----------------------------------------------------------------------------------
@@ -241,9 +294,9 @@ def test_presets_describe_their_levels_and_build(name):
     assert [lv["size_bytes"] for lv in d["levels"]] == [lv.size_bytes for lv in p.levels]
     assert p.source
     c = Caches(p)
-    tags, stamps, params, counts, clock = c.arrays
-    assert params.shape == (len(p.levels), 6) and counts.shape == (len(p.levels) + 1, 2)
-    assert len(tags) == len(stamps) == sum(
+    tags, stamps, dirty, params, counts, clock = c.arrays
+    assert params.shape == (len(p.levels), 6) and counts.shape == (len(p.levels) + 1, mm.COUNT_COLUMNS)
+    assert len(tags) == len(stamps) == len(dirty) == sum(
         (1 if lv.shared else p.units) * lv.size_bytes // lv.line_bytes for lv in p.levels)
 
 

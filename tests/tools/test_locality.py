@@ -144,6 +144,27 @@ def test_two_warps_transactions_by_hand():
     assert r.dram_bytes_per_ray == 15 * 32 / 8 and r.l1_hit_rate == 23 / 38
 
 
+def test_the_replays_stores_are_the_cache_models_write_misses(bunny):
+    """The replay's stores (the local entry stack: memsites.STORE_SITES) go to the cache model as
+    stores: every store transaction that L1 did not hold is counted a write miss, and no load is.
+    On an 8 KiB L1 under node traffic some stores miss (a wide node's pushes reach slots that no
+    pop brought in), per_ray and sorted."""
+    v, f = bunny
+    o, d, tmax = _rays(v, "incoherent", n=4000)
+    bvh = layerbvh.build(v, f, branching=4, treelet_height=8, batch_rays=len(o))
+    small = Preset(name="small", description="8 KiB L1 over 1 MiB", kind="cpu", units=1, resident_warps=1,
+                   block_warps=2048, warp=8, segment_bytes=64,
+                   levels=(CacheLevel("L1", 8 * 1024, 8, 64, shared=False),
+                           CacheLevel("L2", 1024 * 1024, 16, 64, shared=True)),
+                   flush_private_each_kernel=False, source="test")
+    stores = list(ms.STORE_SITES)
+    for mode in ("per_ray", "layer_sorted"):
+        rep = L.replay(bvh.layout, o, d, tmax, mode, False, 8, small, bvh.tail_rays, bvh.tail_fraction)
+        missed = rep.levels_hit[stores, 1:].sum(axis=0)  # store transactions served by L2, DRAM
+        assert rep.write_misses == (int(missed.sum()), int(missed[1:].sum())) and missed.sum() > 0, (mode, rep.write_misses)
+        assert L.row("incoherent", rep, 8).l1_write_misses_per_ray == missed.sum() / len(o)
+
+
 def _soup():
     v, f = meshes.sphere_soup(60, 240, seed=4)
     return v, f

@@ -76,9 +76,10 @@ def test_a_disturbed_measurement_is_refused():
     2N means something else ran in the N-ray region (seen once: -430 read misses per ray), and the
     check must stop instead of tabulating it."""
     check = _check_module()
-    a = {"D1mr": 100, "DLmr": 50, "D1mw": 10, "Ir": 1000}
-    b = {"D1mr": 300, "DLmr": 90, "D1mw": 30, "Ir": 3000}
-    assert check.region_difference(a, b, 10, "x") == {"D1": 20, "LL": 4, "D1_writes": 2, "instructions": 200}
+    a = {"D1mr": 100, "DLmr": 50, "D1mw": 10, "DLmw": 5, "Ir": 1000}
+    b = {"D1mr": 300, "DLmr": 90, "D1mw": 30, "DLmw": 15, "Ir": 3000}
+    assert check.region_difference(a, b, 10, "x") == {"D1": 20, "LL": 4, "D1_writes": 2, "LL_writes": 1,
+                                                      "instructions": 200}
     with pytest.raises(RuntimeError, match="more events"):
         check.region_difference(b, a, 10, "per_ray, D1 32 KiB")
 
@@ -92,7 +93,8 @@ def test_a_disturbed_measurement_is_measured_again():
     def disturbed_once(*args):
         calls.append(args)
         if len(calls) == 1:
-            check.region_difference({"D1mr": 3, "DLmr": 3, "Ir": 3, "D1mw": 0}, {"D1mr": 1, "DLmr": 1, "Ir": 1, "D1mw": 0},
+            check.region_difference({"D1mr": 3, "DLmr": 3, "Ir": 3, "D1mw": 0, "DLmw": 0},
+                                    {"D1mr": 1, "DLmr": 1, "Ir": 1, "D1mw": 0, "DLmw": 0},
                                     1, "per_ray, D1 32 KiB")
         return {"per_ray": {"D1": 1.0}, "lanes": 8}
     got = check.cachegrind_misses("work", 10, ["per_ray"], 32, 1024, measure=disturbed_once)
@@ -101,7 +103,8 @@ def test_a_disturbed_measurement_is_measured_again():
 
     def always(*args):
         calls.append(args)
-        check.region_difference({"D1mr": 3, "DLmr": 3, "Ir": 3, "D1mw": 0}, {"D1mr": 1, "DLmr": 1, "Ir": 1, "D1mw": 0},
+        check.region_difference({"D1mr": 3, "DLmr": 3, "Ir": 3, "D1mw": 0, "DLmw": 0},
+                                {"D1mr": 1, "DLmr": 1, "Ir": 1, "D1mw": 0, "DLmw": 0},
                                 1, "per_ray, D1 32 KiB")
     with pytest.raises(RuntimeError, match=f"{check.ATTEMPTS} measurements, each disturbed"):
         check.cachegrind_misses("work", 10, ["per_ray"], 32, 1024, measure=always)
