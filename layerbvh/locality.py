@@ -104,7 +104,8 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     local_words = lanes_held * (cap_max + 1)
     sizes = {"nodes": lay.nodes.nbytes, "tris": lay.tris.nbytes, "treelet_first": lay.treelet_first.nbytes,
              "node_treelet": lay.node_treelet.nbytes, "stack_link": n_all * cap_g * 4, "stack_t": n_all * cap_g * 4,
-             "local_link": local_words * 4, "local_t": local_words * 4}
+             "local_link": local_words * 4, "local_t": local_words * 4,
+             **{f"results_{k}": n_all * 4 for k in "t prim u v".split()}}
     # The state record's format, as wavefront.trace picks it (the replay flattens instances).
     record_bytes = 4 * StateRecords.words(False, cap_g, n_all)
     compact = record_bytes == 4 * COMPACT_RECORD_WORDS
@@ -114,6 +115,10 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
         # (state.StateRecords: in that step's lane order), through the sort's permutation; from a
         # compact record, the treelet of a node link (walk._record_treelet).
         sizes["state_records"] = n_all * record_bytes
+        # A step writes its keys and records (lane order) into arrays of their own: the records
+        # the next step reads are the ones this step wrote (ping-pong, as Dr.Jit's allocator
+        # hands the freed array of the step before to the one after).
+        sizes["state_records_out"], sizes["keys"] = n_all * record_bytes, n_all * 4
         start = [("ray_records", RAY_RECORD_BYTES, ms.BY_SLOT), ("state_records", record_bytes, ms.BY_PREVIOUS_LANE)] \
             + ([("node_treelet", 4, ms.BY_LINK_NODE)] if compact else [])
     else:
@@ -135,6 +140,13 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
             site_base[site], site_bytes[site], site_local[site] = base[region], 4, True
     for k, (region, nbytes, _) in enumerate(start):
         site_base[ms.S_START + k], site_bytes[ms.S_START + k] = base[region], nbytes
+    outputs = zip((ms.S_RES_T, ms.S_RES_PRIM, ms.S_RES_U, ms.S_RES_V), ("results_t", "results_prim", "results_u", "results_v"))
+    if layer:
+        outputs = [*outputs, (ms.S_KEY_OUT, "keys"), (ms.S_SPILL_LINK, "stack_link"), (ms.S_SPILL_T, "stack_t")]
+    for site, region in outputs:
+        site_base[site], site_bytes[site] = base[region], 4
+    if layer:
+        site_base[ms.S_STATE_OUT], site_bytes[ms.S_STATE_OUT] = base["state_records_out"], record_bytes
     start_sites = np.arange(len(start), dtype=np.int64)
     start_by = np.array([by for _, _, by in start], np.int64)
     prev_pos = np.zeros(n_all, np.int64)
@@ -179,6 +191,8 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
             pushed = int(lanes[2] - before[2])
             keys = mt.next_treelets(order, ist, finished)
             prev_pos[order] = np.arange(len(order))  # (each ray's record, where this step wrote it)
+            state_in = ms.S_START + 1
+            site_base[state_in], site_base[ms.S_STATE_OUT] = site_base[ms.S_STATE_OUT], site_base[state_in]
             done = int(np.count_nonzero(keys == finished))
             last = done == n_active
             sort_bytes += sort_traffic(n_active, pushed, done, sort, last, record_bytes)
@@ -253,7 +267,7 @@ class LocalityRow:
     node_dram_bytes_per_ray: float
     triangle_dram_bytes_per_ray: float
     sort_bytes_per_ray: float
-    total_dram_bytes_per_ray: float     # dram + write-backs + sort + result: what the mode costs the memory bus
+    total_dram_bytes_per_ray: float     # dram + sort + result: what the mode costs the memory bus
     branching: int = 2                  # children per node of the replayed tree
     result_bytes_per_ray: float = 0.0   # hits written to the results (steptraffic.result_traffic)
     steps_per_ray: float = 0.0          # kernel calls a ray took part in (wavefront steps and the tail)
@@ -267,7 +281,8 @@ class LocalityRow:
     seconds: float = 0.0
     trace_exact: bool | None = None     # the trace matched the kernel on every ray (None: not checked)
     l1_write_misses_per_ray: float = 0.0  # the kernels' stores (local entry stack) that missed L1
-    write_back_bytes_per_ray: float = 0.0  # dirty lines written back into DRAM (in total_dram_bytes_per_ray)
+    write_back_bytes_per_ray: float = 0.0  # dirty lines written back into DRAM (the stores' bytes: counted in the
+    #                                        between-step and result bytes, so not again in total_dram_bytes_per_ray)
     preset_params: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
@@ -276,11 +291,14 @@ class LocalityRow:
 
 def row(kind: str, rep: ReplayResult, treelet_height: int, sampled_from: int | None = None,
         check: TraceCheck | None = None) -> LocalityRow:
-    """The row of one replay."""
+    """The row of one replay: its transactions, hit rates and DRAM bytes are the traversal's (the
+    sites before memsites.S_END); what the kernels write out is in the between-step and result
+    bytes (steptraffic), its stores' misses in the cache state and l1_write_misses_per_ray."""
     n = max(rep.rays, 1)
     levels = rep.preset.levels
-    tx = rep.tally[:, 0]
-    lh = rep.levels_hit
+    traversal = range(ms.S_END)
+    tx = rep.tally[:ms.S_END, 0]
+    lh = rep.levels_hit[:ms.S_END]
     total = int(tx.sum())
 
     def per_ray(sites):
@@ -292,7 +310,7 @@ def row(kind: str, rep: ReplayResult, treelet_height: int, sampled_from: int | N
 
     def dram(sites):
         return float(lh[list(sites), -1].sum()) * levels[-1].line_bytes / n
-    start_sites = range(ms.S_START, ms.SITES)
+    start_sites = range(ms.S_START, ms.S_END)
     return LocalityRow(
         kind=kind, mode=rep.mode, warp=rep.warp, preset=rep.preset.name, treelet_height=treelet_height, rays=rep.rays,
         inner_per_ray=rep.work["inner_nodes"].sum() / n, leaves_per_ray=rep.work["leaves"].sum() / n,
@@ -303,15 +321,15 @@ def row(kind: str, rep: ReplayResult, treelet_height: int, sampled_from: int | N
         stack_transactions_per_ray=per_ray(ms.CATEGORY["stack"]),
         local_transactions_per_ray=per_ray(ms.CATEGORY["local"]),
         ray_transactions_per_ray=per_ray(start_sites),
-        requests_per_transaction=float(rep.tally[:, 1].sum()) / total if total else 0.0,
+        requests_per_transaction=float(rep.tally[:ms.S_END, 1].sum()) / total if total else 0.0,
         simd_efficiency=rep.lane_iterations / (rep.warp_iterations * rep.warp) if rep.warp_iterations else 0.0,
         l1_hit_rate=rate(0), l2_hit_rate=rate(1) if len(levels) > 1 else 0.0,
         l3_hit_rate=rate(2) if len(levels) > 2 else None,
         l2_bytes_per_ray=float(total - lh[:, 0].sum()) * levels[0].line_bytes / n,
-        dram_bytes_per_ray=dram(range(ms.SITES)),
+        dram_bytes_per_ray=dram(traversal),
         node_dram_bytes_per_ray=dram(ms.CATEGORY["node"]), triangle_dram_bytes_per_ray=dram(ms.CATEGORY["triangle"]),
         sort_bytes_per_ray=rep.sort_bytes / n,
-        total_dram_bytes_per_ray=dram(range(ms.SITES)) + (rep.write_back_bytes + rep.sort_bytes + rep.result_bytes) / n,
+        total_dram_bytes_per_ray=dram(traversal) + (rep.sort_bytes + rep.result_bytes) / n,
         branching=rep.branching, result_bytes_per_ray=rep.result_bytes / n, steps_per_ray=float(rep.work["steps"].sum()) / n,
         sort_bytes_per_ray_step=rep.sort_bytes / rep.ray_steps if rep.ray_steps else 0.0,
         pushed_per_ray_step=rep.pushed / rep.ray_steps if rep.ray_steps else 0.0,

@@ -17,13 +17,12 @@ from __future__ import annotations
 # (every iteration: walk keeps local accesses outside branches, a lane that pushes nothing writes
 # the spare slot). At a warp's first iteration each lane also loads its ray (and, in a wavefront
 # step, its state). A wide node (branching 4 or 8) is one record load of its format's size; a
-# lane that pushes writes its K - 1 push slots (the kernel's push is a branch: on a GPU, lanes
-# that push nothing are predicated off). Instanced layouts are not replayed: the locality tools
-# flatten instances.
+# lane that pushes writes its K - 1 push slots (a branch: on a GPU, lanes that push nothing are
+# predicated off); a lane that ends stores its outputs (memstores.py). Instances: flattened.
 import numba
 import numpy as np
 
-from . import cachesim, geometry, layout, memsites, numba_cache
+from . import cachesim, geometry, layout, memsites, memstores, numba_cache
 from .layout import TRI_FACE
 from .cachesim import cache_access, coalesce
 from .memsites import (BY_LANE, BY_LINK_NODE, BY_SLOT, F_D, F_INV, F_O, F_SX, F_SY, F_SZ, F_T, F_U, F_V, I_ACTIVE,
@@ -355,8 +354,6 @@ def _write_back(s, ls, ist, loc_link, loc_t, g_link, g_t):
     return nl
 
 
-
-
 @numba.njit(cache=True, inline="always")
 def _start_index(by, s, lane, prev_pos, ist, bounded):
     if by == BY_LINK_NODE:
@@ -434,6 +431,7 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
                     ls = slot_id * W + j
                     for k in range(S_START, S_START + n_start):  # iterate() resets the others
                         req[j, k] = NO_READ
+                    memstores.reset(req[j])
                     if fresh:
                         for k in range(n_start):  # the ray (and its state) at the kernel's start
                             req[j, S_START + k] = _start_index(start_by_pos[k], s, lo + j, prev_pos, ist, bounded)
@@ -445,12 +443,14 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
                         going += 1
                     else:
                         lanes_out[3] += ist[s, I_HITS]
-                        if bounded and ist[s, I_DONE] == 0:
-                            held = _write_back(s, ls, ist, loc_link, loc_t, g_link, g_t)
-                            lanes_out[2] += held
+                        used |= memstores.lane_end(s, lo + j, bounded, use_global, ist, req[j])
+                        if bounded and ist[s, I_DONE] == 0:  # (the spill's stores before the write-back moves sp)
+                            memstores.spill_stores(s, ist, cap_g, site_base, seg_bytes, u, tags, stamps, dirty, params,
+                                                   counts, clock, tally, levels_hit, loads, addr, every, segs)
+                            lanes_out[2] += _write_back(s, ls, ist, loc_link, loc_t, g_link, g_t)
                 lanes_out[0] += 1
                 lanes_out[1] += live
-                for k in range(S_START + n_start):
+                for k in range(SITES):
                     if (used >> k) & 1 == 0:
                         continue
                     size = site_bytes[k]
@@ -497,4 +497,4 @@ def next_treelets(order, ist, finished):
     return keys
 
 
-numba_cache.follow(globals(), cachesim, memsites, layout, geometry)  # what the replay compiles in (numba_cache)
+numba_cache.follow(globals(), cachesim, memsites, memstores, layout, geometry)  # what the replay compiles in (numba_cache)

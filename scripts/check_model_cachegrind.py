@@ -248,7 +248,7 @@ def model_misses(bvh, o, d, n: int, mode: str, pre) -> dict:
     def per_ray(level, sites):
         return float(got[2 * n][level][sites].sum() - got[n][level][sites].sum()) / n
     parts = {"D1": {}, "LL": {}}
-    for cat, sites in {**ms.CATEGORY, "ray and state records": tuple(range(ms.S_START, ms.SITES))}.items():
+    for cat, sites in {**ms.CATEGORY, "ray and state records": tuple(range(ms.S_START, ms.S_END))}.items():
         parts["D1"][cat] = per_ray(0, [k for k in sites if k in loads])
         parts["LL"][cat] = per_ray(1, [k for k in sites if k in loads])
     # Read misses against valgrind's D1mr/DLmr; the replay's stores (the local entry stack) that

@@ -361,6 +361,12 @@ MUTATIONS = (
              "k in STORE_SITES",
              "False",
              ("tests/tools/test_locality.py::test_the_replays_stores_are_the_cache_models_write_misses",)),
+    Mutation("replay_stores_no_state_records", "the locality replay's steps write no state record for the rays "
+             "that go on",
+             "layerbvh/memstores.py",
+             "        if ist[s, I_DONE] == 0:\n            req_j[S_STATE_OUT] = position\n",
+             "        if False:\n            req_j[S_STATE_OUT] = position\n",
+             ("tests/tools/test_locality.py::test_trace_follows_the_kernel[closest-camera-bunny]",)),
     Mutation("wide_drops_farthest_child", "a wide node pushes one entry fewer than it hits (the farthest hit child "
              "is dropped)",
              "layerbvh/walk.py",

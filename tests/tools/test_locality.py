@@ -50,6 +50,14 @@ def test_trace_follows_the_kernel(request, mesh_name, kind, any_hit):
             assert rep.kernels > (1 if any_hit else 3), f"{mode} ran {rep.kernels} kernels: no wavefront steps"
         # The model's own accounting: every transaction was served by exactly one level.
         assert rep.levels_hit.sum() == rep.tally[:, 0].sum()
+        # The kernels' stores as lanes end (memstores): per_ray every ray's hit by slot; a step's
+        # sort key per lane, a state record per ray it carries on, the entries those still hold.
+        req = rep.tally[:, 1]
+        if mode == "per_ray":
+            assert req[ms.S_RES_T] == rep.rays and req[ms.S_KEY_OUT:].sum() == 0
+        else:
+            assert req[ms.S_KEY_OUT] == rep.ray_steps and req[ms.S_STATE_OUT] == rep.carried > 0
+            assert req[ms.S_SPILL_LINK] == req[ms.S_SPILL_T] == rep.pushed
 
 
 @pytest.mark.parametrize("branching", [4, 8])
@@ -133,19 +141,26 @@ def test_two_warps_transactions_by_hand():
     tx = rep.tally[:, 0]
     assert tx[ms.S_NODE] == 4 and tx[ms.S_TRI] == 4
     assert sum(tx[s] for s in ms.CATEGORY["local"]) == 16
-    assert tx[ms.S_START:].sum() == 14
-    assert tx.sum() == 38
+    assert tx[ms.S_START:ms.S_END].sum() == 14
+    assert tx[:ms.S_END].sum() == 38
     assert rep.warp_iterations == 4 and rep.lane_iterations == 16
     # Warp 0 brings in 13 sectors (7 ray, 2 node, 2 local, 2 triangle) and re-reads the local ones
     # (6 L1 hits); warp 1 misses only on triangle B (2) and hits the other 17.
-    assert rep.levels_hit[:, 0].sum() == 23 and rep.levels_hit[:, 1].sum() == 0 and rep.levels_hit[:, 2].sum() == 15
+    lh = rep.levels_hit[:ms.S_END]
+    assert lh[:, 0].sum() == 23 and lh[:, 1].sum() == 0 and lh[:, 2].sum() == 15
+    # As its rays end, each warp stores their hits by slot (t, prim, u, v: 4 lanes x 4 bytes, one
+    # sector of each array; both warps' slots share it): warp 0's four stores miss (write
+    # allocate: fetched from DRAM), warp 1's hit. The local stack's stores hit (its pops read them in).
+    results = [ms.S_RES_T, ms.S_RES_PRIM, ms.S_RES_U, ms.S_RES_V]
+    assert list(tx[results]) == [2, 2, 2, 2] and tx[ms.S_END:].sum() == 8
+    assert list(rep.levels_hit[results].sum(axis=0)) == [4, 0, 4] and rep.write_misses == (4, 4)
     r = L.row("hand", rep, 8)
     assert r.simd_efficiency == 1.0 and r.transactions_per_ray == 38 / 8
     assert r.dram_bytes_per_ray == 15 * 32 / 8 and r.l1_hit_rate == 23 / 38
 
 
 def test_the_replays_stores_are_the_cache_models_write_misses(bunny):
-    """The replay's stores (the local entry stack: memsites.STORE_SITES) go to the cache model as
+    """The replay's stores (the local entry stack, the kernels' outputs: memsites.STORE_SITES) go to the cache model as
     stores: every store transaction that L1 did not hold is counted a write miss, and no load is.
     On an 8 KiB L1 under node traffic some stores miss (a wide node's pushes reach slots that no
     pop brought in), per_ray and sorted."""
