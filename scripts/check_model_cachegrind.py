@@ -313,22 +313,27 @@ def check(args) -> dict:
 
 
 def verdicts(rows: list[dict]) -> list[dict]:
-    """Per D1 size and level: sorted / per_ray misses in the model and in cachegrind, and whether
-    the ratio (within RATIO_TOLERANCE), the absolute misses (ABSOLUTE_TOLERANCE) and the verdict
-    (which mode misses less) agree."""
+    """Per D1 size, level and kind of miss (reads, and writes where the rows have the model's):
+    sorted / per_ray misses in the model and in cachegrind, and whether the ratio (within
+    RATIO_TOLERANCE), the absolute misses (ABSOLUTE_TOLERANCE) and the verdict (which mode misses
+    less) agree."""
     out = []
     by = {(r["mode"], r["level"], r["d1_kib"]): r for r in rows}
+    columns = {"reads": ("model_misses_per_ray", "cachegrind_misses_per_ray"),
+               "writes": ("model_write_misses_per_ray", "cachegrind_write_misses_per_ray")}
     for (mode, level, d1), s in by.items():
         p = by.get(("per_ray", level, d1))
         if mode != "layer_sorted" or p is None:
             continue
-        rm = s["model_misses_per_ray"] / p["model_misses_per_ray"] if p["model_misses_per_ray"] else float("nan")
-        rc = s["cachegrind_misses_per_ray"] / p["cachegrind_misses_per_ray"] if p["cachegrind_misses_per_ray"] else float("nan")
-        absolute = all(abs(r["model_misses_per_ray"] - r["cachegrind_misses_per_ray"])
-                       <= ABSOLUTE_TOLERANCE * r["cachegrind_misses_per_ray"] for r in (p, s))
-        out.append({"level": level, "d1_kib": d1, "model_ratio": rm, "cachegrind_ratio": rc,
-                    "ratio_agrees": abs(rm - rc) <= RATIO_TOLERANCE * rc, "absolute_agrees": absolute,
-                    "verdict_agrees": (rm < 1) == (rc < 1)})
+        for misses, (model, cg) in columns.items():
+            if any(r.get(model) is None or r.get(cg) is None for r in (p, s)):
+                continue  # (a JSON from before the model had stores)
+            rm = s[model] / p[model] if p[model] else float("nan")
+            rc = s[cg] / p[cg] if p[cg] else float("nan")
+            absolute = all(abs(r[model] - r[cg]) <= ABSOLUTE_TOLERANCE * r[cg] for r in (p, s))
+            out.append({"level": level, "d1_kib": d1, "misses": misses, "model_ratio": rm, "cachegrind_ratio": rc,
+                        "ratio_agrees": abs(rm - rc) <= RATIO_TOLERANCE * rc, "absolute_agrees": absolute,
+                        "verdict_agrees": (rm < 1) == (rc < 1)})
     return out
 
 
@@ -356,10 +361,11 @@ def section(docs: list[dict]) -> str:
             parts.append(f"| {r['d1_kib']} KiB | {r['level']} | {r['mode']} | {r['model_misses_per_ray']:.2f} | "
                          f"{r['cachegrind_misses_per_ray']:.2f} | {q:.2f} | {num(r.get('model_write_misses_per_ray'))} | "
                          f"{num(r['cachegrind_write_misses_per_ray'])} | {'yes' if r['hits_equal'] else 'NO'} |")
-        parts += ["", "| D1 | level | sorted ÷ per_ray, model | sorted ÷ per_ray, valgrind | ratio within ±15% | "
-                  "absolute within ±30% | same verdict |", "|---|---|---|---|---|---|---|"]
+        parts += ["", "| D1 | level | misses | sorted ÷ per_ray, model | sorted ÷ per_ray, valgrind | ratio within ±15% | "
+                  "absolute within ±30% | same verdict |", "|---|---|---|---|---|---|---|---|"]
         for v in doc["verdicts"]:
-            parts.append(f"| {v['d1_kib']} KiB | {v['level']} | {v['model_ratio']:.2f} | {v['cachegrind_ratio']:.2f} | "
+            parts.append(f"| {v['d1_kib']} KiB | {v['level']} | {v.get('misses', 'reads')} | {v['model_ratio']:.2f} | "
+                         f"{v['cachegrind_ratio']:.2f} | "
                          f"{'yes' if v['ratio_agrees'] else 'no'} | {'yes' if v['absolute_agrees'] else 'no'} | "
                          f"{'yes' if v['verdict_agrees'] else 'no'} |")
         parts += ["", *unmodelled(doc["rows"]), ""]
@@ -427,7 +433,7 @@ def main(argv=None) -> int:
         tmp.write_text(json.dumps(doc, indent=1))
         tmp.replace(args.json)
     for v in doc["verdicts"]:
-        print(f"D1 {v['d1_kib']} KiB {v['level']}: sorted / per_ray model {v['model_ratio']:.2f}, valgrind "
+        print(f"D1 {v['d1_kib']} KiB {v['level']} {v.get('misses', 'reads')}: sorted / per_ray model {v['model_ratio']:.2f}, valgrind "
               f"{v['cachegrind_ratio']:.2f}: ratio {'agrees' if v['ratio_agrees'] else 'DISAGREES'}, absolute "
               f"{'agrees' if v['absolute_agrees'] else 'DISAGREES'}, verdict {'agrees' if v['verdict_agrees'] else 'DISAGREES'}")
     return disagreement(doc["verdicts"])
@@ -438,7 +444,8 @@ def disagreement(verdicts: list[dict]) -> int:
     the model's sorted / per_ray ratio or its verdict (which mode misses less) disagrees with
     valgrind's at any D1 size or level; 0 when every one agrees. The JSON is written either way,
     so BENCHMARKS.md shows the disagreement too."""
-    bad = [f"{v['level']} (D1 {v['d1_kib']} KiB)" for v in verdicts if not (v["ratio_agrees"] and v["verdict_agrees"])]
+    bad = [f"{v['level']} {v.get('misses', 'reads')} (D1 {v['d1_kib']} KiB)" for v in verdicts
+           if not (v["ratio_agrees"] and v["verdict_agrees"])]
     if not bad:
         return 0
     print(f"check_model_cachegrind: the model disagrees with valgrind on sorted / per_ray (ratio beyond "

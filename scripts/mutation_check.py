@@ -367,6 +367,12 @@ MUTATIONS = (
              "        if ist[s, I_DONE] == 0:\n            req_j[S_STATE_OUT] = position\n",
              "        if False:\n            req_j[S_STATE_OUT] = position\n",
              ("tests/tools/test_locality.py::test_trace_follows_the_kernel[closest-camera-bunny]",)),
+    Mutation("cachegrind_reads_only", "the valgrind check compares read misses only: the model's stores get no "
+             "verdict",
+             "scripts/check_model_cachegrind.py",
+             "            if any(r.get(model) is None or r.get(cg) is None for r in (p, s)):",
+             "            if misses == \"writes\" or any(r.get(model) is None or r.get(cg) is None for r in (p, s)):",
+             ("tests/tools/test_model_cachegrind.py::test_write_misses_get_verdicts_of_their_own",)),
     Mutation("wide_drops_farthest_child", "a wide node pushes one entry fewer than it hits (the farthest hit child "
              "is dropped)",
              "layerbvh/walk.py",

@@ -315,5 +315,12 @@ def test_a_verdict_says_what_its_model_was_checked_against(tmp_path):
     text = mc.note("cpu", tmp_path)
     assert "a.ply (10 triangles), b.ply (20 triangles)" in text, text
     assert "DISAGREES at D1 8 KiB, 1 of 2 meshes agreeing" in text and "agrees at D1 32 KiB, LL beside D1 32" in text, text
+    assert "reads only" in text
+    # With write verdicts (the model's stores), each is named by its kind of miss.
+    (tmp_path / "cachegrind_c.json").write_text(json.dumps(
+        {"mesh": "c.ply", "triangles": 30, "verdicts": [v("D1", 32), {**v("D1", 32, ratio=False), "misses": "writes"}]}))
+    text = mc.note("cpu", tmp_path)
+    assert "reads and writes:" in text and "D1 32 KiB (writes), 0 of 1 meshes agreeing" in text, text
+    (tmp_path / "cachegrind_c.json").unlink()
     noted = mc.with_note({"cpu": "cpu: sorting wins.", "x": "x: sorting loses."}, mc.notes({"cpu": "cpu"}, tmp_path))
     assert noted["cpu"].startswith("cpu: sorting wins. [model checked") and mc.GPU_NOTE in noted["x"]

@@ -39,12 +39,16 @@ def note(kind: str, folder: Path = CHECKS) -> str:
     tally: dict[tuple, list] = {}
     for doc in docs:
         for v in doc["verdicts"]:
-            tally.setdefault((v["level"], v["d1_kib"]), []).append(bool(v["ratio_agrees"] and v["verdict_agrees"]))
-    where = lambda key: f"D1 {key[1]} KiB" if key[0] == "D1" else f"{key[0]} beside D1 {key[1]} KiB"  # noqa: E731
+            key = (v["level"], v["d1_kib"], v.get("misses", "reads"))
+            tally.setdefault(key, []).append(bool(v["ratio_agrees"] and v["verdict_agrees"]))
+    kinds = [k for k in ("reads", "writes") if any(key[2] == k for key in tally)]
+    where = lambda key: ((f"D1 {key[1]} KiB" if key[0] == "D1" else f"{key[0]} beside D1 {key[1]} KiB")  # noqa: E731
+                         + (f" ({key[2]})" if len(kinds) > 1 else ""))
     agrees = [where(k) for k, ok in tally.items() if all(ok)]
     differs = [f"{where(k)}, {sum(ok)} of {len(ok)} meshes agreeing" for k, ok in tally.items() if not all(ok)]
     meshes = ", ".join(f"{Path(d.get('mesh', '?')).name} ({d.get('triangles', 0):,} triangles)" for d in docs)
-    return (f"model checked against valgrind's cache simulator on {meshes}, reads only: sorted / per_ray "
+    return (f"model checked against valgrind's cache simulator on {meshes}, {' and '.join(kinds)}"
+            + (" only" if len(kinds) == 1 else "") + ": sorted / per_ray "
             + (f"agrees at {', '.join(agrees)}" if agrees else "agrees nowhere")
             + (f"; DISAGREES at {'; '.join(differs)}" if differs else "")
             + " (BENCHMARKS.md)")
