@@ -97,10 +97,13 @@ class RayRecords:
     def __init__(self, m, o, d):
         self.m = m
         n = dr.width(o[0])
-        rec = dr.zeros(m.Float, n * self.STRIDE)
-        idx = dr.arange(m.UInt32, n) * self.STRIDE
-        for c, x in enumerate(tuple(o) + tuple(d)):
-            dr.scatter(rec, x, idx + c)
+        # One kernel writes each record whole (its padding too, so nothing fills the array first).
+        # Six scatters of one component each were six kernels, each passing over every record:
+        # on the CPU, valgrind counted 3.5 write misses per ray for them, beside the step
+        # kernels' 2.6 (PERFORMANCE.md, entry 59).
+        zero = dr.zeros(m.Float, n)
+        rec = dr.empty(m.Float, n * self.STRIDE)
+        dr.scatter(rec, m.ArrayXf([*o, *d] + [zero] * (self.STRIDE - 6)), dr.arange(m.UInt32, n))
         dr.eval(rec)
         self.rec = rec
 

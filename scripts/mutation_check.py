@@ -373,6 +373,12 @@ MUTATIONS = (
              "            if any(r.get(model) is None or r.get(cg) is None for r in (p, s)):",
              "            if misses == \"writes\" or any(r.get(model) is None or r.get(cg) is None for r in (p, s)):",
              ("tests/tools/test_model_cachegrind.py::test_write_misses_get_verdicts_of_their_own",)),
+    Mutation("ray_records_filled_first", "the ray records' array is filled with zeros before the kernel writes them "
+             "(a memset pass over every record)",
+             "layerbvh/state.py",
+             "        rec = dr.empty(m.Float, n * self.STRIDE)\n",
+             "        rec = dr.zeros(m.Float, n * self.STRIDE)\n",
+             ("tests/engine/test_engine_kernels.py::test_ray_records_are_packed_by_one_kernel",)),
     Mutation("wide_drops_farthest_child", "a wide node pushes one entry fewer than it hits (the farthest hit child "
              "is dropped)",
              "layerbvh/walk.py",

@@ -108,3 +108,28 @@ def test_a_walk_traces_its_loop_once(mode, branching, instanced, bunny):
                                                                [be.from_numpy(F, np.ascontiguousarray(d[:, c]))
                                                                 for c in range(3)], F(np.inf), bvh.m.Bool(True)).t))
         assert counts == [1], ("inline", counts)
+
+
+def test_ray_records_are_packed_by_one_kernel():
+    """A layer trace packs each ray's origin and direction into one 32-byte record (state.RayRecords)
+    with one kernel that writes the records whole, nothing filled first: six scatters of a
+    component each were six kernels, each passing over every record, and a memset (PERFORMANCE.md,
+    entry 59: 3 of valgrind's 6.9 write misses per ray)."""
+    from layerbvh.state import RayRecords
+    m = be.module("llvm")
+    rng = np.random.default_rng(3)
+    n = 1000
+    cols = [rng.normal(size=n).astype(np.float32) for _ in range(6)]
+    o, d = [m.Float(c) for c in cols[:3]], [m.Float(c) for c in cols[3:]]
+    dr.eval(*o, *d)
+    was = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()
+    try:
+        rec = RayRecords(m, o, d).rec
+        dr.sync_thread()
+        kinds = [k["type"] for k in dr.kernel_history()]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, was)
+    assert kinds == [dr.KernelType.JIT], kinds
+    assert np.array_equal(np.asarray(rec).reshape(n, 8), np.stack(cols + [np.zeros(n, np.float32)] * 2, 1))
