@@ -1,4 +1,5 @@
-"""The public LayerBVH object: build once, then trace closest hits or test occlusion in any mode, in batches of bounded memory."""
+"""The public LayerBVH object: build once, then trace closest hits or test occlusion in any mode, in batches of
+bounded memory."""
 from __future__ import annotations
 
 import time

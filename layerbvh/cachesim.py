@@ -1,4 +1,5 @@
-"""The cache simulator's numba kernels: one access through set-associative LRU levels (loads, and stores with write-allocate and write-back), a flush of the private levels, and warp coalescing."""
+"""The cache simulator's numba kernels: one access through set-associative LRU levels (loads, and stores with
+write-allocate and write-back), a flush of the private levels, and warp coalescing."""
 from __future__ import annotations
 
 import numba

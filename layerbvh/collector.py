@@ -1,4 +1,5 @@
-"""Python's cycle collector paused while Dr.Jit records kernels: one nested, thread-safe hold for every recording (a render's, a frozen wavefront step's).
+"""Python's cycle collector paused while Dr.Jit records kernels: one nested, thread-safe hold for
+every recording (a render's, a frozen wavefront step's).
 
 Why: whatever the collector frees runs its release in the middle of the recording, and Dr.Jit
 1.5.0 aborts the process on two such releases (both reproduced in subprocess tests):

@@ -1,4 +1,5 @@
-"""Ray set-up (world and instance object space), the conservative two-child slab test and the watertight ray/triangle test (Dr.Jit)."""
+"""Ray set-up (world and instance object space), the conservative two-child slab test and the watertight ray/triangle
+test (Dr.Jit)."""
 from __future__ import annotations
 
 from dataclasses import dataclass

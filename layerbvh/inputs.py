@@ -1,4 +1,5 @@
-"""What the engine takes in: meshes, parameters and rays checked (bad input is a ValueError naming what is wrong), rays as a RayBatch."""
+"""What the engine takes in: meshes, parameters and rays checked (bad input is a ValueError naming what is wrong),
+rays as a RayBatch."""
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -1,4 +1,5 @@
-"""Instanced scenes: groups of unique geometry placed by affine instances, the top-level BVH over the instances' world boxes, and the one combined layout the kernels walk."""
+"""Instanced scenes: groups of unique geometry placed by affine instances, the top-level BVH over the instances'
+world boxes, and the one combined layout the kernels walk."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace

@@ -1,4 +1,5 @@
-"""The kernel census: every kernel Dr.Jit compiles in a process, by the pytest test that was running, for finding where the suite's cold time goes (scripts/kernel_census.py reads it)."""
+"""The kernel census: every kernel Dr.Jit compiles in a process, by the pytest test that was running, for finding
+where the suite's cold time goes (scripts/kernel_census.py reads it)."""
 from __future__ import annotations
 
 import atexit

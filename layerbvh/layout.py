@@ -1,4 +1,5 @@
-"""Layer BVH layout: the byte layout of treelets stored treelet by treelet (nodes, triangles, leaves, instances), and its invariant check (relayout.py builds it)."""
+"""Layer BVH layout: the byte layout of treelets stored treelet by treelet (nodes, triangles, leaves, instances), and
+its invariant check (relayout.py builds it)."""
 from __future__ import annotations
 
 from dataclasses import dataclass

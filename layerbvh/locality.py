@@ -1,4 +1,5 @@
-"""The locality model: a traversal's exact memory trace (memtrace) per mode, run through the coalescing and cache model (memmodel) for a warp width and a hardware preset, checked against the kernel, reduced to one row of numbers."""
+"""The locality model: a traversal's exact memory trace (memtrace) per mode, run through the coalescing and cache
+model (memmodel) for a warp width and a hardware preset, checked against the kernel, reduced to one row of numbers."""
 from __future__ import annotations
 
 import os

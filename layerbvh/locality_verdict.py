@@ -1,4 +1,5 @@
-"""The locality tool's verdicts: one sentence per kind of rays and configuration, and one per preset, on what sorting does to DRAM traffic."""
+"""The locality tool's verdicts: one sentence per kind of rays and configuration, and one per preset, on what sorting
+does to DRAM traffic."""
 from __future__ import annotations
 
 from .inputs import DEFAULT_BRANCHING, DEFAULT_TREELET_HEIGHT

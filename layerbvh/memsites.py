@@ -1,4 +1,5 @@
-"""The locality replay's vocabulary: its load sites (one load instruction each), the columns of a ray's replay state, and the layout's records as the replay reads them."""
+"""The locality replay's vocabulary: its load sites (one load instruction each), the columns of a ray's replay state,
+and the layout's records as the replay reads them."""
 from __future__ import annotations
 
 import numpy as np

@@ -1,4 +1,5 @@
-"""The locality replay's stores as a lane ends: the hit it writes to the results, and in a wavefront step its sort key, its state record and the entries it still holds (the kernels' outputs, fed to the cache model as stores)."""
+"""The locality replay's stores as a lane ends: the hit it writes to the results, and in a wavefront step its sort
+key, its state record and the entries it still holds (the kernels' outputs, fed to the cache model as stores)."""
 from __future__ import annotations
 
 import numba

@@ -1,4 +1,4 @@
-"""The exact memory trace of a traversal: a numba replay of walk.py's loop, lane by lane in the kernels' real schedule, feeding every load to the memory model."""
+"""The exact memory trace of a traversal: walk.py's loop replayed in the kernels' schedule, fed to the cache model."""
 from __future__ import annotations
 
 # Why a replay and not an instrumented kernel: the trace has to be read in schedule order (warp by

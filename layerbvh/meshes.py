@@ -1,4 +1,4 @@
-"""The engine's test and benchmark inputs (numpy only, no scenes): deterministic procedural meshes, a PLY/OBJ mesh reader, and camera/incoherent ray batches."""
+"""The engine's test and benchmark inputs (numpy only): procedural meshes, a PLY/OBJ reader, camera/incoherent rays."""
 from __future__ import annotations
 
 import math

@@ -1,4 +1,5 @@
-"""Re-laying a binary BVH out as a Layer BVH (layout.py's byte layout): treelets cut by height, collapsed to the branching, written breadth-first treelet after treelet, with the triangle, leaf and instance records."""
+"""Re-laying a binary BVH out as a Layer BVH (layout.py's byte layout): treelets cut by height, collapsed to the
+branching, written breadth-first treelet after treelet, with the triangle, leaf and instance records."""
 from __future__ import annotations
 
 import time

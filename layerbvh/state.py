@@ -1,4 +1,5 @@
-"""What a traversal carries per ray: the rays read by slot, the state between wavefront steps, the results, and the MISS sentinel."""
+"""What a traversal carries per ray: the rays read by slot, the state between wavefront steps, the results, and the
+MISS sentinel."""
 from __future__ import annotations
 
 from dataclasses import dataclass

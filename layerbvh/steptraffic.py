@@ -1,4 +1,5 @@
-"""What a wavefront step moves besides its traversal kernel's loads (the layer modes' "between steps" bytes), and the limits a step design has to meet to save memory traffic."""
+"""What a wavefront step moves besides its traversal kernel's loads (the layer modes' "between steps" bytes), and the
+limits a step design has to meet to save memory traffic."""
 from __future__ import annotations
 
 from .state import LEAN_STATE_BYTES

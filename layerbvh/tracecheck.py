@@ -1,4 +1,5 @@
-"""The check that a locality replay follows the kernel: per ray, its hits, work counts and loads of each kind equal what the kernel returned and counted."""
+"""The check that a locality replay follows the kernel: per ray, its hits, work counts and loads of each kind equal
+what the kernel returned and counted."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -25,8 +26,9 @@ class TraceCheck:
 
 
 def check_trace(bvh, o, d, tmax, any_hit: bool, rep) -> TraceCheck:
-    """`rep`: a locality.ReplayResult of rays (o, d, tmax). Trace the same rays with the kernel (bvh: a layerbvh.LayerBVH over the replayed layout,
-    batch_rays >= the ray count) in rep.mode and compare hits and per-ray work counts."""
+    """`rep`: a locality.ReplayResult of rays (o, d, tmax). Trace the same rays with the kernel
+    (bvh: a layerbvh.LayerBVH over the replayed layout, batch_rays >= the ray count) in rep.mode and
+    compare hits and per-ray work counts."""
     if any_hit:
         q = bvh.occluded(o, d, tmax, mode=rep.mode, stats=True)
         kernel_hit = np.asarray(q.occluded, bool)

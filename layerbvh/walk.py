@@ -1,4 +1,5 @@
-"""The traversal kernel: a nearest-first stack walk over the Layer BVH, whole (per-ray) or one treelet at a time (wavefront step)."""
+"""The traversal kernel: a nearest-first stack walk over the Layer BVH, whole (per-ray) or one treelet at a time
+(wavefront step)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -30,14 +31,14 @@ def walk(m, lay: DeviceLayout, rays, s: RayState, *, stack: EntryStack | None, c
     record's, found from its link). `rays` (state.SlotRays,
     state.RayRecords or state.DirectRays) gives each slot's origin and direction.
 
-    One loop iteration does, in this order, whatever of these a ray needs: test one triangle of
-    the leaf it is in; take the next entry from its stack (culled when farther than the
-    closest hit so far); test both children of the node it is at, going on with the nearer and
-    pushing the farther (a wide node: all its children, on with the nearest, the other hit ones
-    pushed far to near, so the nearest of them is popped first); enter the leaf it reached (a
-    leaf link carries its triangle range, so the next iteration tests the first triangle). So a node whose children both miss costs no
-    extra iteration to pop, and no iteration reads a leaf record. Stack memory is touched only
-    on a push or a pop.
+    One loop iteration does, in this order, whatever of these a ray needs: test one triangle of the
+    leaf it is in; take the next entry from its stack (culled when farther than the closest hit so
+    far); test both children of the node it is at, going on with the nearer and pushing the farther
+    (a wide node: all its children, on with the nearest, the other hit ones pushed far to near, so
+    the nearest of them is popped first); enter the leaf it reached (a leaf link carries its
+    triangle range, so the next iteration tests the first triangle). So a node whose children both
+    miss costs no extra iteration to pop, and no iteration reads a leaf record. Stack memory is
+    touched only on a push or a pop.
 
     With `count_work` False the work counters are left untouched (no statistics work).
     Entries pushed during this call live in a local stack of `cap` entries; entries pushed by

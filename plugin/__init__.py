@@ -1,4 +1,8 @@
-"""layerbvh_mitsuba: the Mitsuba 3 side of layerbvh; once Mitsuba is imported (before or after this package), our integrators (`layerbvh`, `layerbvh_direct`, `layerbvh_volpath`, `layerbvh_volpathmis`, `layerbvh_depth`, `layerbvh_ptracer`, `layerbvh_prb`, `layerbvh_prb_basic`, `layerbvh_prbvolpath`: runtime/registry.py PLUGINS; stock's `stokes`, `aov` and `moment` wrap them) are registered with every variant set; `layerbvh_mitsuba.register()` does it explicitly.
+"""layerbvh_mitsuba: the Mitsuba 3 side of layerbvh; once Mitsuba is imported (before or after this
+package), our integrators (`layerbvh`, `layerbvh_direct`, `layerbvh_volpath`, `layerbvh_volpathmis`,
+`layerbvh_depth`, `layerbvh_ptracer`, `layerbvh_prb`, `layerbvh_prb_basic`, `layerbvh_prbvolpath`:
+runtime/registry.py PLUGINS; stock's `stokes`, `aov` and `moment` wrap them) are registered with
+every variant set; `layerbvh_mitsuba.register()` does it explicitly.
 
 Importing this package imports nothing heavy itself: pytest loads our plugin (`pytest_plugin`, an
 entry point) in every run of a user's environment, and a run that never touches a scene should not
@@ -26,8 +30,9 @@ def _hook(mi) -> None:
 
 
 class _AfterMitsuba:
-    """A meta path finder (the protocol: importlib.abc costs 40 ms to import) that finds nothing; when `mitsuba` is imported, it wraps that one import so `_hook` runs right
-    after Mitsuba's own module code, then leaves sys.meta_path."""
+    """A meta path finder (the protocol: importlib.abc costs 40 ms to import) that finds nothing;
+    when `mitsuba` is imported, it wraps that one import so `_hook` runs right after Mitsuba's own
+    module code, then leaves sys.meta_path."""
 
     def find_spec(self, name, path, target=None):
         if name != "mitsuba":

@@ -1,4 +1,5 @@
-"""The `layerbvh` command line: render a Mitsuba XML scene with our traversal, or A/B-compare it against stock Mitsuba."""
+"""The `layerbvh` command line: render a Mitsuba XML scene with our traversal, or A/B-compare it against stock
+Mitsuba."""
 from __future__ import annotations
 
 import argparse

@@ -1,4 +1,6 @@
-"""pytest plugin `layerbvh` (entry point pytest11, installed with the package): the `layerbvh_ab` fixture and `layerbvh_compare` marker that check a scene against stock Mitsuba with the two-step verdict, its options, kept failure pages and one summary across the run."""
+"""pytest plugin `layerbvh` (entry point pytest11, installed with the package): the `layerbvh_ab` fixture and
+`layerbvh_compare` marker that check a scene against stock Mitsuba with the two-step verdict, its options, kept
+failure pages and one summary across the run."""
 from __future__ import annotations
 
 import hashlib

@@ -1,4 +1,5 @@
-"""Reusable pytest helpers: check that the layerbvh integrator renders a scene (and, for prb and its kin, its derivatives) like stock Mitsuba (same seed, and statistically), each an `ab.compare.compare` run."""
+"""Reusable pytest helpers: check that the layerbvh integrator renders a scene (and, for prb and its kin, its
+derivatives) like stock Mitsuba (same seed, and statistically), each an `ab.compare.compare` run."""
 from __future__ import annotations
 
 import math

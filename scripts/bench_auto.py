@@ -1,4 +1,5 @@
-"""Entry point: auto against per_ray on whole renders (layerbvh_mitsuba.tools.bench.auto_render); run `.venv/bin/python scripts/bench_auto.py --help`."""
+"""Entry point: auto against per_ray on whole renders (layerbvh_mitsuba.tools.bench.auto_render); run
+`.venv/bin/python scripts/bench_auto.py --help`."""
 import sys
 
 from layerbvh_mitsuba.tools.bench.auto_render import main

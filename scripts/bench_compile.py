@@ -1,4 +1,5 @@
-"""Kernels compiled and LLVM seconds, with an empty Dr.Jit kernel cache: what a fresh clone's test suite and a user's first run pay (issue 39).
+"""Kernels compiled and LLVM seconds, with an empty Dr.Jit kernel cache: what a fresh clone's test
+suite and a user's first run pay (issue 39).
 
 Each measurement runs in a fresh process with its own empty HOME (so an empty ~/.drjit):
 - `counted SCENE MODE`: a counted render (stats on: the wavefront loop, what every `compare`'s

@@ -1,4 +1,6 @@
-"""What one inverse-rendering iteration costs through our traversal against stock `prb`: a primal render, and a render with the gradient of a reflectance followed by `dr.backward` (what an optimisation step runs), side by side in one process (issue 43).
+"""What one inverse-rendering iteration costs through our traversal against stock `prb`: a primal
+render, and a render with the gradient of a reflectance followed by `dr.backward` (what an
+optimisation step runs), side by side in one process (issue 43).
 
 Each scene of `--scenes` (project scenes, default cbox, bunny_box, paper_mix) is rendered with
 stock `prb` and with `layerbvh_prb` in each `--traversals` mode at the scene's own max_depth, at

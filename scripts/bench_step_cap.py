@@ -1,4 +1,5 @@
-"""The wavefront tail's step cap (wavefront.TAIL_STEPS): steps and time of layer_sorted with the cap and without it, side by side in one run.
+"""The wavefront tail's step cap (wavefront.TAIL_STEPS): steps and time of layer_sorted with the cap
+and without it, side by side in one run.
 
 Rows: turned slivers (meshes.turned_slivers: every ray walks most of the tree, hundreds of steps)
 and incoherent rays on the bunny and on 600k procedural triangles (typical batches: the cap

@@ -1,4 +1,5 @@
-"""Entry point: the traversal benchmark (layerbvh_mitsuba.tools.bench.traversal); run `.venv/bin/python scripts/bench_traversal.py --help`."""
+"""Entry point: the traversal benchmark (layerbvh_mitsuba.tools.bench.traversal); run `.venv/bin/python
+scripts/bench_traversal.py --help`."""
 import sys
 
 from layerbvh_mitsuba.tools.bench.traversal import main

@@ -1,5 +1,7 @@
 #!/usr/bin/env python3
-"""Host time of a walk: milliseconds per trace call and per wavefront step on few rays (where tracing the walk in Python, not the kernel, is the cost), and how many times each walk's loop body was traced.
+"""Host time of a walk: milliseconds per trace call and per wavefront step on few rays (where
+tracing the walk in Python, not the kernel, is the cost), and how many times each walk's loop body
+was traced.
 
     .venv/bin/python scripts/bench_walk_trace.py [--rays 2000] [--reps 40] [--json OUT]
 

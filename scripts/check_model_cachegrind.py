@@ -1,4 +1,6 @@
-"""Check the locality model against valgrind's cache simulator: first-level and last-level read misses per ray of the real LLVM kernels, beside the model's replay of the same rays on the same cache geometry.
+"""Check the locality model against valgrind's cache simulator: first-level and last-level read
+misses per ray of the real LLVM kernels, beside the model's replay of the same rays on the same
+cache geometry.
 
     .venv/bin/python scripts/check_model_cachegrind.py --mesh scenes/meshes/bunny.ply --rays 20000 \\
         [--d1 32 --d1 8] [--ll 1024] [--modes per_ray,layer_sorted,layer_unsorted] --json OUT

@@ -1,4 +1,5 @@
-"""Entry point: stress scenes (spheres, terrain, soup) (layerbvh_mitsuba.tools.bench.stress); run `.venv/bin/python scripts/gen_stress.py --help`."""
+"""Entry point: stress scenes (spheres, terrain, soup) (layerbvh_mitsuba.tools.bench.stress); run `.venv/bin/python
+scripts/gen_stress.py --help`."""
 import sys
 
 from layerbvh_mitsuba.tools.bench.stress import main

@@ -1,4 +1,8 @@
-"""The device half of the GPU check (scripts/gpu_check.sh): times per_ray and layer_sorted on the recorded rays on the GPU for each (branching, treelet height) of model.json, checks their hits against the LLVM replay, and prints the measured layer_sorted x per_ray beside the locality model's prediction for that GPU; then the same at the GPU's own scale on a sphere soup (1M-16M incoherent rays).
+"""The device half of the GPU check (scripts/gpu_check.sh): times per_ray and layer_sorted on the
+recorded rays on the GPU for each (branching, treelet height) of model.json, checks their hits
+against the LLVM replay, and prints the measured layer_sorted x per_ray beside the locality model's
+prediction for that GPU; then the same at the GPU's own scale on a sphere soup (1M-16M incoherent
+rays).
 
 Needs only the engine (layerbvh: numpy, numba, drjit), so it runs on a device image without
 Mitsuba:  python scripts/gpu_check_device.py out/gpu_check [--backend cuda] [--runs 5]

@@ -1,4 +1,7 @@
-"""The walk kernels' hashes and IR op counts in every mode (per_ray, layer_sorted), branching (2, 4, 8), query (closest, closest with statistics, any hit) and an instanced layout: run it before and after a change to the kernel's Python, and diff. The same hash is the same LLVM IR, so the same speed.
+"""The walk kernels' hashes and IR op counts in every mode (per_ray, layer_sorted), branching (2, 4,
+8), query (closest, closest with statistics, any hit) and an instanced layout: run it before and
+after a change to the kernel's Python, and diff. The same hash is the same LLVM IR, so the same
+speed.
 
     .venv/bin/python scripts/kernel_hashes.py > before.txt   # (then again after the change; diff)
 """

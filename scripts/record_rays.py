@@ -1,4 +1,5 @@
-"""Entry point: record the rays a render traces (layerbvh_mitsuba.tools.bench.record_rays); run `.venv/bin/python scripts/record_rays.py --help`."""
+"""Entry point: record the rays a render traces (layerbvh_mitsuba.tools.bench.record_rays); run `.venv/bin/python
+scripts/record_rays.py --help`."""
 import sys
 
 from layerbvh_mitsuba.tools.bench.record_rays import main

@@ -1,4 +1,5 @@
-"""Entry point: BENCHMARKS.md from benchmark JSON (layerbvh_mitsuba.tools.bench.report); run `.venv/bin/python scripts/report.py --help`."""
+"""Entry point: BENCHMARKS.md from benchmark JSON (layerbvh_mitsuba.tools.bench.report); run `.venv/bin/python
+scripts/report.py --help`."""
 import sys
 
 from layerbvh_mitsuba.tools.bench.report import main

@@ -1,4 +1,5 @@
-"""Entry point: the stability suite -> STABILITY.md (layerbvh_mitsuba.tools.stability.report); run `.venv/bin/python scripts/stability_report.py --help`."""
+"""Entry point: the stability suite -> STABILITY.md (layerbvh_mitsuba.tools.stability.report); run `.venv/bin/python
+scripts/stability_report.py --help`."""
 import sys
 
 from layerbvh_mitsuba.tools.stability.report import main

@@ -1,4 +1,5 @@
-"""Entry point: the README's status matrix (layerbvh_mitsuba.tools.status_matrix); `--readme` splices it, `--check` checks every named test exists."""
+"""Entry point: the README's status matrix (layerbvh_mitsuba.tools.status_matrix); `--readme` splices it, `--check`
+checks every named test exists."""
 import sys
 
 from layerbvh_mitsuba.tools.status_matrix import main

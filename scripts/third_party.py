@@ -1,4 +1,5 @@
-"""Entry point: A/B check on third-party scenes (layerbvh_mitsuba.tools.third_party); run `.venv/bin/python scripts/third_party.py --help`."""
+"""Entry point: A/B check on third-party scenes (layerbvh_mitsuba.tools.third_party); run `.venv/bin/python
+scripts/third_party.py --help`."""
 import sys
 
 from layerbvh_mitsuba.tools.third_party import main

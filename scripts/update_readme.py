@@ -1,4 +1,5 @@
-"""Splice a script's markdown output into a page between `<!-- SECTION:start -->` and `<!-- SECTION:end -->` (--readme: the page, README.md by default; third_party lives in docs/scenes.md, bench_headline in docs/results.md)."""
+"""Splice a script's markdown output into a page between `<!-- SECTION:start -->` and `<!-- SECTION:end -->`
+(--readme: the page, README.md by default; third_party lives in docs/scenes.md, bench_headline in docs/results.md)."""
 from __future__ import annotations
 
 import argparse

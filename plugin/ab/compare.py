@@ -1,4 +1,6 @@
-"""One A/B comparison: stock Mitsuba (Embree) against ours on one scene, in the scene's own integrator where ours mirrors it (path, direct, aov/moment around them), at the same seed, then the two-step verdict. The command line, the sweep, the third-party table, the pytest helpers and the stability suite all run this."""
+"""One A/B comparison: stock Mitsuba (Embree) against ours on one scene, in the scene's own integrator where ours
+mirrors it (path, direct, aov/moment around them), at the same seed, then the two-step verdict. The command line, the
+sweep, the third-party table, the pytest helpers and the stability suite all run this."""
 from __future__ import annotations
 
 import time

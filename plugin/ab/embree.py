@@ -1,4 +1,5 @@
-"""Stock Mitsuba (Embree) ray queries over a bare triangle mesh or instanced meshes: the ground truth the engine is checked against."""
+"""Stock Mitsuba (Embree) ray queries over a bare triangle mesh or instanced meshes: the ground truth the engine is
+checked against."""
 from __future__ import annotations
 
 import drjit as dr

@@ -1,4 +1,6 @@
-"""Gradients in an A/B comparison: the derivatives of stock's and ours' renders with respect to one scene parameter (a mi.traverse key), forward (an image) and backward (the parameter's gradient of the image's sum), judged with the image verdict's two steps."""
+"""Gradients in an A/B comparison: the derivatives of stock's and ours' renders with respect to one scene parameter
+(a mi.traverse key), forward (an image) and backward (the parameter's gradient of the image's sum), judged with the
+image verdict's two steps."""
 from __future__ import annotations
 
 import time

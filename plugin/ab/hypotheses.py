@@ -1,4 +1,6 @@
-"""The verdict's family of tests of equal means (paired same-seed and independent-seed, over the image, its tiles and its pixels), its one correction and its power (the minimum detectable effect, MDE).
+"""The verdict's family of tests of equal means (paired same-seed and independent-seed, over the
+image, its tiles and its pixels), its one correction and its power (the minimum detectable effect,
+MDE).
 
 Why each test is valid (docs/verdict.md says the same for users):
 

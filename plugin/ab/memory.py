@@ -1,4 +1,5 @@
-"""What a render will need in memory (film, camera rays, the traversal's work), against what the machine has: refused by name before it starts."""
+"""What a render will need in memory (film, camera rays, the traversal's work), against what the machine has: refused
+by name before it starts."""
 from __future__ import annotations
 
 import resource

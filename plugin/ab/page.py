@@ -1,4 +1,5 @@
-"""index.html of a compare report: the verdict, an A/B viewer (flip, split, exposure, pixel values, loupe), error maps with colour bars, plain metrics and timings. Self-contained: no network, no framework."""
+"""index.html of a compare report: the verdict, an A/B viewer (flip, split, exposure, pixel values, loupe), error
+maps with colour bars, plain metrics and timings. Self-contained: no network, no framework."""
 from __future__ import annotations
 
 import base64

@@ -1,4 +1,5 @@
-"""The extreme-scale referee (issue 56 item 2): a scene far from unit size rendered by stock once more, rescaled to unit size by a power of two, and which side's image matches it."""
+"""The extreme-scale referee (issue 56 item 2): a scene far from unit size rendered by stock once more, rescaled to
+unit size by a power of two, and which side's image matches it."""
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass

@@ -1,4 +1,5 @@
-"""Choosing the variant, loading a scene, rendering in passes (timed, interruptible), writing EXR: what the CLI, converge, the tests and the tools share."""
+"""Choosing the variant, loading a scene, rendering in passes (timed, interruptible), writing EXR: what the CLI,
+converge, the tests and the tools share."""
 from __future__ import annotations
 
 import contextlib

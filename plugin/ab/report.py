@@ -1,4 +1,5 @@
-"""A/B report folder for stock vs ours (EXRs, PNGs, error and heat maps, derivative images, report.json with the verdict, index.html), written whole."""
+"""A/B report folder for stock vs ours (EXRs, PNGs, error and heat maps, derivative images, report.json with the
+verdict, index.html), written whole."""
 from __future__ import annotations
 
 import io

@@ -1,4 +1,6 @@
-"""The schema of report.json (what `layerbvh compare` and the pytest plugin write): every field a user's script may read, its type and meaning, checked against real reports by the tests and rendered as the documentation's reference page."""
+"""The schema of report.json (what `layerbvh compare` and the pytest plugin write): every field a user's script may
+read, its type and meaning, checked against real reports by the tests and rendered as the documentation's reference
+page."""
 from __future__ import annotations
 
 from layerbvh_mitsuba.ab.metrics import AGREES, DIFFERS, SAME_PATHS, SAME_SEED_DIFFERS

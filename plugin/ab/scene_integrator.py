@@ -1,4 +1,5 @@
-"""Which integrator a scene asks for, and the settings both sides of a comparison render with: the loaded scene's integrator by Mitsuba's API where it says enough, the scene file (following <include>) where it does not."""
+"""Which integrator a scene asks for, and the settings both sides of a comparison render with: the loaded scene's
+integrator by Mitsuba's API where it says enough, the scene file (following <include>) where it does not."""
 from __future__ import annotations
 
 import re
@@ -91,9 +92,10 @@ def _int_setting(text: str, key: str) -> int | None:
 @dataclass(frozen=True)
 class Wrapper:
     """An `aov`, `moment` or `stokes` integrator around one of ESTIMATORS (possibly through another
-    such wrapper), as the scene's XML states it: it adds channels (AOVs, second moments, the
-    Stokes vector's four components) to the estimator's result and changes nothing else. `wrap(inner)` is the same wrapper around another
-    integrator (a dict or a loaded object): stock's estimator, or ours standing in for it."""
+    such wrapper), as the scene's XML states it: it adds channels (AOVs, second moments, the Stokes
+    vector's four components) to the estimator's result and changes nothing else. `wrap(inner)` is
+    the same wrapper around another integrator (a dict or a loaded object): stock's estimator, or
+    ours standing in for it."""
 
     type: str                        # "aov" | "moment" | "stokes"
     props: tuple = ()                # its own properties as (name, value) pairs (aov: aovs)
@@ -201,13 +203,14 @@ def scene_wrapper(scene_path, params: dict | None = None) -> tuple[Wrapper | Non
 class PathSettings:
     """The settings both sides of a comparison render with, and where they come from.
 
-    `estimator`: the scene's estimator, `path`, `direct`, `volpath` or `volpathmis` (ours stands
-    in for it: runtime.registry.STANDS_IN_FOR). `props`: its settings (path, volpath: max_depth,
+    `estimator`: the scene's estimator, `path`, `direct`, `volpath` or `volpathmis` (ours stands in
+    for it: runtime.registry.STANDS_IN_FOR). `props`: its settings (path, volpath: max_depth,
     rr_depth, hide_emitters; volpathmis: those and use_spectral_mis; direct: emitter_samples,
     bsdf_samples, hide_emitters; only those the scene sets). `scene_integrator`: the scene's
-    integrator (`integrator_name`). `wrapper`: the scene's `aov`/`moment` around its estimator, kept on both sides (stock's estimator inside on one, ours on the other).
-    `as_path`: the scene's integrator is neither path nor such a wrapper and the user asked to
-    compare it as path (`--as-path`); `note` says what was taken from it."""
+    integrator (`integrator_name`). `wrapper`: the scene's `aov`/`moment` around its estimator, kept
+    on both sides (stock's estimator inside on one, ours on the other). `as_path`: the scene's
+    integrator is neither path nor such a wrapper and the user asked to compare it as path
+    (`--as-path`); `note` says what was taken from it."""
 
     props: dict
     scene_integrator: str

@@ -1,4 +1,5 @@
-"""Stock images kept by scene content and settings: a SHA-256 over the scene's XML, every file it references and the render settings names each one (converge's references, the pytest plugin's stock side, recorded rays)."""
+"""Stock images kept by scene content and settings: a SHA-256 over the scene's XML, every file it references and the
+render settings names each one (converge's references, the pytest plugin's stock side, recorded rays)."""
 from __future__ import annotations
 
 import hashlib

@@ -1,4 +1,6 @@
-"""The verdict of an A/B comparison: the same-seed criterion (same paths), the paired same-seed tests and, where paths diverged, the independent-seed renders and tests (hypotheses.py), judged as one family (agrees within Monte Carlo noise, or differs beyond it)."""
+"""The verdict of an A/B comparison: the same-seed criterion (same paths), the paired same-seed tests and, where
+paths diverged, the independent-seed renders and tests (hypotheses.py), judged as one family (agrees within Monte
+Carlo noise, or differs beyond it)."""
 from __future__ import annotations
 
 import time
@@ -183,11 +185,11 @@ def _render_moments(mi, scene, integrator, spp: int, seed: int) -> Moments:
 def independent_seed_test(mi, scene_path, res: tuple[int, int], spp: int, stock: dict, ours: dict,
                           params: dict | None = None, ours_modify=None, wrap=None, seed: int = 0) -> StatisticalStep:
     """Stock's estimator and ours (integrator dicts: `path` and `layerbvh`, or `direct` and
-    `layerbvh_direct`) at independent seeds (`independent_seeds(seed)`) on the scene at film
-    `res`, `spp` camera samples per pixel a side (`pixel_moments`), and their tests of equal
-    means over the image, its tiles and its pixels (hypotheses.independent). `ours_modify(params)` changes ours' copy of the
-    scene (negative controls). `wrap(integrator)`: the scene's wrapper around each side where it
-    changes what is judged (stokes: scene_integrator.PathSettings.integrator)."""
+    `layerbvh_direct`) at independent seeds (`independent_seeds(seed)`) on the scene at film `res`,
+    `spp` camera samples per pixel a side (`pixel_moments`), and their tests of equal means over the
+    image, its tiles and its pixels (hypotheses.independent). `ours_modify(params)` changes ours'
+    copy of the scene (negative controls). `wrap(integrator)`: the scene's wrapper around each side
+    where it changes what is judged (stokes: scene_integrator.PathSettings.integrator)."""
     t0 = time.perf_counter()
     scene = load_scene(mi, str(scene_path), res, **(params or {}))
     ours_scene = scene if ours_modify is None else load_modified(mi, scene_path, res, params, ours_modify)

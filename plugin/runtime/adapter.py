@@ -1,4 +1,5 @@
-"""Scene adapter: a Mitsuba scene's mesh triangles in world space, its analytic shapes, and the map from our hits back to Mitsuba shapes."""
+"""Scene adapter: a Mitsuba scene's mesh triangles in world space, its analytic shapes, and the map from our hits
+back to Mitsuba shapes."""
 from __future__ import annotations
 
 import hashlib

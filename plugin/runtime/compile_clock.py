@@ -1,4 +1,5 @@
-"""Seconds Dr.Jit spent compiling kernels over a stretch of work, for nested timers (a render, and auto's pre-pass inside it)."""
+"""Seconds Dr.Jit spent compiling kernels over a stretch of work, for nested timers (a render, and auto's pre-pass
+inside it)."""
 from __future__ import annotations
 
 import drjit as dr

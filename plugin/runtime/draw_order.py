@@ -1,4 +1,6 @@
-"""The order in which stock's wheel draws the two numbers of a `bsdf->sample(..., sampler->next_1d(), sampler->next_2d())` call, probed from stock itself once per wheel, and the one helper every mirror of such a call draws through.
+"""The order in which stock's wheel draws the two numbers of a `bsdf->sample(...,
+sampler->next_1d(), sampler->next_2d())` call, probed from stock itself once per wheel, and the one
+helper every mirror of such a call draws through.
 
 C++ leaves the evaluation order of a call's arguments to the compiler. Mitsuba's wheels are built
 with GCC, which evaluates them right to left: the 2D sample is drawn before the 1D one, in

@@ -1,4 +1,6 @@
-"""The render driver: one Mitsuba integrator per estimator it is given (runtime/estimators/), owning what a render needs around sampling: the scene's BVH and feature plan, auto's pre-pass and kept decisions, the loop mode, statistics, ray recording and heat maps."""
+"""The render driver: one Mitsuba integrator per estimator it is given (runtime/estimators/), owning what a render
+needs around sampling: the scene's BVH and feature plan, auto's pre-pass and kept decisions, the loop mode,
+statistics, ray recording and heat maps."""
 from __future__ import annotations
 
 import json

@@ -1,4 +1,6 @@
-"""What Mitsuba's float32 surface code loses at extreme scales, repaired for our tracer (issue 56 item 2): geometric normals (a table of the scene's mesh face normals), the shadow rays of emitter samples whose distance overflows, and spawned rays' offsets in a tiny scene."""
+"""What Mitsuba's float32 surface code loses at extreme scales, repaired for our tracer (issue 56 item 2): geometric
+normals (a table of the scene's mesh face normals), the shadow rays of emitter samples whose distance overflows, and
+spawned rays' offsets in a tiny scene."""
 from __future__ import annotations
 
 import drjit as dr

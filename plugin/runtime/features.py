@@ -1,4 +1,5 @@
-"""Which parts of an integrator a scene needs (emitter sampling, emitter hits, analytic shapes, media, transmittance rays, sort, statistics), with the reasons."""
+"""Which parts of an integrator a scene needs (emitter sampling, emitter hits, analytic shapes, media, transmittance
+rays, sort, statistics), with the reasons."""
 from __future__ import annotations
 
 from dataclasses import dataclass, fields

@@ -1,4 +1,5 @@
-"""Mitsuba's instances held still while Dr.Jit records a render: no Python garbage collection between the first and the last call a kernel records.
+"""Mitsuba's instances held still while Dr.Jit records a render: no Python garbage collection
+between the first and the last call a kernel records.
 
 Why (issue 39; found as a worker abort of the suite that depended on the tests run before it):
 Dr.Jit dispatches a call on a pointer array (`mi.MediumPtr`, `mi.BSDFPtr`, ...) over every live

@@ -1,4 +1,5 @@
-"""The bounce loop's one interface to ray queries (`RayQueries`), and the two answers that run inside its kernel: our per_ray traversal inline, and Mitsuba's Embree (the control)."""
+"""The bounce loop's one interface to ray queries (`RayQueries`), and the two answers that run inside its kernel: our
+per_ray traversal inline, and Mitsuba's Embree (the control)."""
 from __future__ import annotations
 
 from abc import ABC, abstractmethod

@@ -1,4 +1,6 @@
-"""Our integrators registered with Mitsuba, once per JIT variant: `layerbvh` (path), `layerbvh_direct`, `layerbvh_volpath`, `layerbvh_volpathmis`, `layerbvh_depth`, `layerbvh_ptracer`, `layerbvh_prb`, `layerbvh_prb_basic` and `layerbvh_prbvolpath`, each the render driver given one estimator."""
+"""Our integrators registered with Mitsuba, once per JIT variant: `layerbvh` (path), `layerbvh_direct`,
+`layerbvh_volpath`, `layerbvh_volpathmis`, `layerbvh_depth`, `layerbvh_ptracer`, `layerbvh_prb`, `layerbvh_prb_basic`
+and `layerbvh_prbvolpath`, each the render driver given one estimator."""
 from __future__ import annotations
 
 import mitsuba as mi

@@ -1,4 +1,5 @@
-"""The scene's geometry as our traversal takes it: Mitsuba's shapes walked once (meshes merged per group, instances and their placements, analytic shapes tested per shape), refused by name where we cannot trace them."""
+"""The scene's geometry as our traversal takes it: Mitsuba's shapes walked once (meshes merged per group, instances
+and their placements, analytic shapes tested per shape), refused by name where we cannot trace them."""
 from __future__ import annotations
 
 import hashlib

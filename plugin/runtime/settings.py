@@ -1,4 +1,5 @@
-"""The integrator's settings, parsed once where they come in (an XML scene's properties, the command line): the traversal choice and the rules for every property."""
+"""The integrator's settings, parsed once where they come in (an XML scene's properties, the command line): the
+traversal choice and the rules for every property."""
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -1,4 +1,5 @@
-"""Error against run time: each configuration renders at 1, 2, 4, ... spp within a time budget and is scored against a cached stock reference."""
+"""Error against run time: each configuration renders at 1, 2, 4, ... spp within a time budget and is scored against
+a cached stock reference."""
 from __future__ import annotations
 
 import csv

@@ -1,4 +1,5 @@
-"""The README's status matrix (issue 58): per mirrored integrator, what the suite compares with stock (variants, derivative keys, polarized modes) and its known divergences, each cell naming the pytest nodes behind it."""
+"""The README's status matrix (issue 58): per mirrored integrator, what the suite compares with stock (variants,
+derivative keys, polarized modes) and its known divergences, each cell naming the pytest nodes behind it."""
 from __future__ import annotations
 
 import argparse

@@ -1,4 +1,6 @@
-"""A/B check on third-party scenes: stock against ours in the scene's own integrator (path, direct, volpath, volpathmis, aov/moment around them; any other as path), same seed, each scene a point of a `layerbvh sweep` (its own process).
+"""A/B check on third-party scenes: stock against ours in the scene's own integrator (path, direct,
+volpath, volpathmis, aov/moment around them; any other as path), same seed, each scene a point of a
+`layerbvh sweep` (its own process).
 
 For every scene found under --root (default ../shared/assets relative to the repository root) it
 loads the scene with the project's loader (film resized to --res) and runs the one A/B comparison

@@ -1,4 +1,5 @@
-"""Canary for the private Dr.Jit calls the engine relies on (pinned drjit==1.5.0): a Dr.Jit upgrade that changes one of them fails here, by name, before it silently changes a sort or a hit."""
+"""Canary for the private Dr.Jit calls the engine relies on (pinned drjit==1.5.0): a Dr.Jit upgrade that changes one
+of them fails here, by name, before it silently changes a sort or a hit."""
 from __future__ import annotations
 
 import drjit as dr

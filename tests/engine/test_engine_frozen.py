@@ -1,4 +1,6 @@
-"""Frozen wavefront steps (wavefront.FROZEN_STACK_BYTES: dr.freeze replays the step and tail kernels; opt-in, LAYERBVH_FROZEN_STEPS=1, on here) return what the unfrozen steps return, at every width they are replayed at, and are replayed, not recorded again."""
+"""Frozen wavefront steps (wavefront.FROZEN_STACK_BYTES: dr.freeze replays the step and tail kernels; opt-in,
+LAYERBVH_FROZEN_STEPS=1, on here) return what the unfrozen steps return, at every width they are replayed at, and are
+replayed, not recorded again."""
 from __future__ import annotations
 
 import numpy as np

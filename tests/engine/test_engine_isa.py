@@ -1,4 +1,5 @@
-"""The LLVM instruction set the kernels compile for can be chosen (LAYERBVH_LLVM_ISA, issue 64): an AVX-512 machine checks a test's expectation as an AVX2 CPU gets it; a bad value is one line."""
+"""The LLVM instruction set the kernels compile for can be chosen (LAYERBVH_LLVM_ISA, issue 64): an AVX-512 machine
+checks a test's expectation as an AVX2 CPU gets it; a bad value is one line."""
 from __future__ import annotations
 
 import json

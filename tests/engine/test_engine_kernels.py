@@ -1,4 +1,5 @@
-"""One compiled kernel serves every tree and every input alignment: what the suite's and a user's first-run time rest on (issue 39: most of it is LLVM compiling kernels)."""
+"""One compiled kernel serves every tree and every input alignment: what the suite's and a user's first-run time rest
+on (issue 39: most of it is LLVM compiling kernels)."""
 from __future__ import annotations
 
 import drjit as dr

@@ -1,4 +1,5 @@
-"""Wide Layer BVHs (branching 4 and 8): the collapse, the layout's invariants, and hits bit-identical to the binary per_ray walk in every mode."""
+"""Wide Layer BVHs (branching 4 and 8): the collapse, the layout's invariants, and hits bit-identical to the binary
+per_ray walk in every mode."""
 from __future__ import annotations
 
 import math

@@ -1,4 +1,5 @@
-"""The kernel census (layerbvh/kernel_census.py, scripts/kernel_census.py) records what a process compiles and groups kernels that differ only by literals."""
+"""The kernel census (layerbvh/kernel_census.py, scripts/kernel_census.py) records what a process compiles and groups
+kernels that differ only by literals."""
 from __future__ import annotations
 
 import json

@@ -1,4 +1,5 @@
-"""Numba's on-disk cache follows the modules a cached function compiles in (layerbvh/numba_cache.py): edited constants are not served stale."""
+"""Numba's on-disk cache follows the modules a cached function compiles in (layerbvh/numba_cache.py): edited
+constants are not served stale."""
 from __future__ import annotations
 
 import subprocess

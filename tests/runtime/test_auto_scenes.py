@@ -1,4 +1,6 @@
-"""auto on a multi-shape scene at its own depth: decided before the render (a pre-pass on the scene's rays), the megakernel when every kind goes per_ray, decisions kept across processes under a key that does not depend on Mitsuba's load order."""
+"""auto on a multi-shape scene at its own depth: decided before the render (a pre-pass on the scene's rays), the
+megakernel when every kind goes per_ray, decisions kept across processes under a key that does not depend on
+Mitsuba's load order."""
 from __future__ import annotations
 
 import json

@@ -1,4 +1,6 @@
-"""`depth` scenes through our traversal: `layerbvh_depth` (the estimator added as one file plus one registry line, issue 42) against stock `depth` at the same seed, on multi-shape scenes, in the megakernel and the wavefront path, through `compare`."""
+"""`depth` scenes through our traversal: `layerbvh_depth` (the estimator added as one file plus one registry line,
+issue 42) against stock `depth` at the same seed, on multi-shape scenes, in the megakernel and the wavefront path,
+through `compare`."""
 from __future__ import annotations
 
 import json

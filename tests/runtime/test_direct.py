@@ -1,4 +1,5 @@
-"""`direct` scenes through our traversal: `layerbvh_direct` against stock `direct` at the same seed and at independent seeds, on multi-shape scenes, in the megakernel and the wavefront path."""
+"""`direct` scenes through our traversal: `layerbvh_direct` against stock `direct` at the same seed and at
+independent seeds, on multi-shape scenes, in the megakernel and the wavefront path."""
 from __future__ import annotations
 
 import re

@@ -1,4 +1,6 @@
-"""What Mitsuba's float32 surface code loses at extreme scales, repaired for our tracer (runtime/extreme_scale.py): the face-normal table against Mitsuba's own normals where they are whole, and shadow rays rebuilt where they are lost. (End to end: the stability suite's extreme_scales case.)"""
+"""What Mitsuba's float32 surface code loses at extreme scales, repaired for our tracer (runtime/extreme_scale.py):
+the face-normal table against Mitsuba's own normals where they are whole, and shadow rays rebuilt where they are
+lost. (End to end: the stability suite's extreme_scales case.)"""
 from __future__ import annotations
 
 import mitsuba as mi

@@ -1,4 +1,6 @@
-"""Frozen wavefront steps next to Mitsuba's objects: nothing a render leaves to Python's cycle collector is freed inside a step's recording (drjit 1.5.0 aborts the process on a host callback there), and scene reading leaves no such garbage."""
+"""Frozen wavefront steps next to Mitsuba's objects: nothing a render leaves to Python's cycle collector is freed
+inside a step's recording (drjit 1.5.0 aborts the process on a host callback there), and scene reading leaves no such
+garbage."""
 from __future__ import annotations
 
 import gc

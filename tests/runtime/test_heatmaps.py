@@ -1,4 +1,5 @@
-"""Traversal-cost heat maps: per-pixel work that sums to the traversal statistics' totals, and shows where a scene is expensive."""
+"""Traversal-cost heat maps: per-pixel work that sums to the traversal statistics' totals, and shows where a scene is
+expensive."""
 from __future__ import annotations
 
 import mitsuba as mi

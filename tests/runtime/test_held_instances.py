@@ -1,4 +1,5 @@
-"""A render must not abort the process when Python's garbage collector frees Mitsuba objects of an earlier scene while Dr.Jit records it (issue 39: the suite's worker aborts; runtime/held_instances.py says why)."""
+"""A render must not abort the process when Python's garbage collector frees Mitsuba objects of an earlier scene
+while Dr.Jit records it (issue 39: the suite's worker aborts; runtime/held_instances.py says why)."""
 from __future__ import annotations
 
 import gc

@@ -1,4 +1,5 @@
-"""Mitsuba instances through our traversal: same-seed images in every mode, hit records filled as Embree fills them, memory, per-shape tests and refusals."""
+"""Mitsuba instances through our traversal: same-seed images in every mode, hit records filled as Embree fills them,
+memory, per-shape tests and refusals."""
 from __future__ import annotations
 
 from pathlib import Path

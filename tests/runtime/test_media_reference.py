@@ -1,4 +1,5 @@
-"""Mitsuba's own render test on its media scenes (scenes/media), with ours standing in for the scenes' integrators (`layerbvh_volpath`, `layerbvh_volpathmis`): each against the stored reference image and its variance."""
+"""Mitsuba's own render test on its media scenes (scenes/media), with ours standing in for the scenes' integrators
+(`layerbvh_volpath`, `layerbvh_volpathmis`): each against the stored reference image and its variance."""
 from __future__ import annotations
 
 import functools

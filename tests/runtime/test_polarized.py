@@ -1,4 +1,6 @@
-"""The polarized variants: `stokes` around what we mirror, and our estimators' Mueller-matrix throughput (the identity to start, BSDF values turned into world frames as stock's path.cpp turns them), same seed against stock on a scene that polarizes."""
+"""The polarized variants: `stokes` around what we mirror, and our estimators' Mueller-matrix throughput (the
+identity to start, BSDF values turned into world frames as stock's path.cpp turns them), same seed against stock on a
+scene that polarizes."""
 from __future__ import annotations
 
 import json

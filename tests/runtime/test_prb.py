@@ -1,4 +1,6 @@
-"""`layerbvh_prb`, `layerbvh_prb_basic` and `layerbvh_prbvolpath` (issue 43): Mitsuba's differentiable path tracers through our traversal, against stock at the same seed in primal mode and in their derivatives (forward and backward), with the gradient verdict's statistical step and its negative controls."""
+"""`layerbvh_prb`, `layerbvh_prb_basic` and `layerbvh_prbvolpath` (issue 43): Mitsuba's differentiable path tracers
+through our traversal, against stock at the same seed in primal mode and in their derivatives (forward and backward),
+with the gradient verdict's statistical step and its negative controls."""
 from __future__ import annotations
 
 import json

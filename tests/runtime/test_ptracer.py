@@ -1,4 +1,5 @@
-"""`layerbvh_ptracer` (issue 43): light paths through our traversal against stock `ptracer`, same seed and statistically, with a negative control; its settings and its light rays."""
+"""`layerbvh_ptracer` (issue 43): light paths through our traversal against stock `ptracer`, same seed and
+statistically, with a negative control; its settings and its light rays."""
 from __future__ import annotations
 
 from pathlib import Path

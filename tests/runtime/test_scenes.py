@@ -1,4 +1,5 @@
-"""Every XML scene in scenes/ declares the common parameters and renders with stock Mitsuba and with layerbvh alike; the paper's scenes also in layer_sorted."""
+"""Every XML scene in scenes/ declares the common parameters and renders with stock Mitsuba and with layerbvh alike;
+the paper's scenes also in layer_sorted."""
 from __future__ import annotations
 
 import re

@@ -1,4 +1,6 @@
-"""Scenes with participating media through our traversal: `layerbvh_volpath` and `layerbvh_volpathmis` against stock `volpath` and `volpathmis` on Mitsuba's own media test scenes (same seed, independent seeds; its reference images: test_media_reference.py) and on media scenes written here, in every JIT variant tested."""
+"""Scenes with participating media through our traversal: `layerbvh_volpath` and `layerbvh_volpathmis` against stock
+`volpath` and `volpathmis` on Mitsuba's own media test scenes (same seed, independent seeds; its reference images:
+test_media_reference.py) and on media scenes written here, in every JIT variant tested."""
 from __future__ import annotations
 
 import re

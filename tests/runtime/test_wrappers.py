@@ -1,4 +1,5 @@
-"""Scenes whose integrator is an `aov` or `moment` wrapper around `path` or `direct`: kept on both sides (stock's estimator inside on one, ours on the other), compared on their radiance, the wrapper's own channels from our hits."""
+"""Scenes whose integrator is an `aov` or `moment` wrapper around `path` or `direct`: kept on both sides (stock's
+estimator inside on one, ours on the other), compared on their radiance, the wrapper's own channels from our hits."""
 from __future__ import annotations
 
 from pathlib import Path

@@ -1,4 +1,5 @@
-"""Benchmark tooling: recorded ray sets are the rays a render traces, the benchmark agrees across modes and with Embree, the report and scaling figure are generated."""
+"""Benchmark tooling: recorded ray sets are the rays a render traces, the benchmark agrees across modes and with
+Embree, the report and scaling figure are generated."""
 from __future__ import annotations
 
 import json

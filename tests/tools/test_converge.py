@@ -1,4 +1,5 @@
-"""`layerbvh converge`: error falls at the Monte Carlo rate for every configuration, outputs are whole, the reference cache is keyed by content."""
+"""`layerbvh converge`: error falls at the Monte Carlo rate for every configuration, outputs are whole, the reference
+cache is keyed by content."""
 from __future__ import annotations
 
 import csv

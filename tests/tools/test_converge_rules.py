@@ -1,4 +1,5 @@
-"""converge's reading of its fits: no ratio from a fit that is not a power law, none read far outside the measured times."""
+"""converge's reading of its fits: no ratio from a fit that is not a power law, none read far outside the measured
+times."""
 from __future__ import annotations
 
 import math

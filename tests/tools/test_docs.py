@@ -1,4 +1,5 @@
-"""The documentation cannot go stale in the ways a script can see (issue 58): the README stays one screen, and every relative link in the README, docs/ and the generated reports leads to a file (and a heading) that exists."""
+"""The documentation cannot go stale in the ways a script can see (issue 58): the README stays one screen, and every
+relative link in the README, docs/ and the generated reports leads to a file (and a heading) that exists."""
 from __future__ import annotations
 
 import os

@@ -1,4 +1,5 @@
-"""gen_stress: each kind loads and renders in Mitsuba at the requested size, byte for byte repeatable, refusing what will not fit."""
+"""gen_stress: each kind loads and renders in Mitsuba at the requested size, byte for byte repeatable, refusing what
+will not fit."""
 from __future__ import annotations
 
 import subprocess

@@ -1,4 +1,5 @@
-"""The GPU check's device half and its report: the device script's kernel listing, run here on the LLVM backend, is what gpu_report splits into traversal, stack-move and sort time."""
+"""The GPU check's device half and its report: the device script's kernel listing, run here on the LLVM backend, is
+what gpu_report splits into traversal, stack-move and sort time."""
 from __future__ import annotations
 
 import json
@@ -14,7 +15,8 @@ from layerbvh_mitsuba.tools.bench import gpu_report
 
 @pytest.fixture(scope="module")
 def listing(tmp_path_factory):
-    """`gpu_check_device.py --kernels` on a small soup (20k rays: several steps before the tail), binary tree at height 4, on the CPU."""
+    """`gpu_check_device.py --kernels` on a small soup (20k rays: several steps before the tail), binary tree at
+    height 4, on the CPU."""
     folder = tmp_path_factory.mktemp("gpu_check")
     (folder / "model.json").write_text(json.dumps({"configs": [[2, 4]]}))
     run = subprocess.run([sys.executable, str(ROOT / "scripts" / "gpu_check_device.py"), str(folder), "--backend",

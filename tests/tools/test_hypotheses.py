@@ -1,4 +1,7 @@
-"""The verdict's tests of equal means (plugin/ab/hypotheses.py) on synthetic images whose truth is known: the false-alarm rate under equal means is at most the stated alpha (also where neighbouring pixels share samples), a bias of the stated MDE is caught at the stated power, a third of it mostly is not, and the report's map marks the rejected tile."""
+"""The verdict's tests of equal means (plugin/ab/hypotheses.py) on synthetic images whose truth is known: the
+false-alarm rate under equal means is at most the stated alpha (also where neighbouring pixels share samples), a bias
+of the stated MDE is caught at the stated power, a third of it mostly is not, and the report's map marks the rejected
+tile."""
 from __future__ import annotations
 
 import math

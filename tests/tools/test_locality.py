@@ -1,4 +1,5 @@
-"""The locality model: the replayed trace against the kernel, transactions on a hand-built case, and where sorting must and cannot cut transactions."""
+"""The locality model: the replayed trace against the kernel, transactions on a hand-built case, and where sorting
+must and cannot cut transactions."""
 from __future__ import annotations
 
 import json

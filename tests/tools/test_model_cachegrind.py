@@ -1,4 +1,5 @@
-"""The locality model against valgrind's cache simulator on the real kernels (scripts/check_model_cachegrind.py), small: a few thousand bunny rays, per_ray and layer_sorted, one D1 size."""
+"""The locality model against valgrind's cache simulator on the real kernels (scripts/check_model_cachegrind.py),
+small: a few thousand bunny rays, per_ray and layer_sorted, one D1 size."""
 from __future__ import annotations
 
 import importlib.util

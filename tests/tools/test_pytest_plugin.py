@@ -1,4 +1,6 @@
-"""The pytest plugin (entry point `layerbvh`) in a user's own project, run by pytest's pytester in a fresh process: a passing check, a failing one with its page kept, the summary across the run, the stock cache on a second run, the options."""
+"""The pytest plugin (entry point `layerbvh`) in a user's own project, run by pytest's pytester in a fresh process: a
+passing check, a failing one with its page kept, the summary across the run, the stock cache on a second run, the
+options."""
 from __future__ import annotations
 
 import json

@@ -1,4 +1,5 @@
-"""compare's unit-scale referee (ab/referee.py): a scene far from unit size is rendered once more by stock, rescaled to unit size, and the report says which side matches it; what cannot be rescaled is named."""
+"""compare's unit-scale referee (ab/referee.py): a scene far from unit size is rendered once more by stock, rescaled
+to unit size, and the report says which side matches it; what cannot be rescaled is named."""
 from __future__ import annotations
 
 import numpy as np

@@ -1,4 +1,5 @@
-"""The compare report page in a real browser (headless Chromium through Selenium): every image decodes, no console error, the flip control switches the image shown, the verdict agrees with report.json."""
+"""The compare report page in a real browser (headless Chromium through Selenium): every image decodes, no console
+error, the flip control switches the image shown, the verdict agrees with report.json."""
 from __future__ import annotations
 
 import json

@@ -1,4 +1,6 @@
-"""The report.json schema (plugin/ab/report_schema.py) can fail: a missing field, a field of another type and an unknown verdict label are each named; the real reports the CLI, --grad and pytest-plugin tests write are checked against it there."""
+"""The report.json schema (plugin/ab/report_schema.py) can fail: a missing field, a field of another type and an
+unknown verdict label are each named; the real reports the CLI, --grad and pytest-plugin tests write are checked
+against it there."""
 from __future__ import annotations
 
 import copy

@@ -1,4 +1,5 @@
-"""Robustness of the command line (layerbvh_mitsuba.tools.stability.robustness): every case a user or a hostile tester meets, run as a subprocess, with its expected outcome."""
+"""Robustness of the command line (layerbvh_mitsuba.tools.stability.robustness): every case a user or a hostile
+tester meets, run as a subprocess, with its expected outcome."""
 from __future__ import annotations
 
 import pytest

@@ -1,4 +1,5 @@
-"""`layerbvh sweep --cluster slurm` on a real one-node SLURM cluster (scripts/slurm_local.sh): the table matches a local cluster's, and a cancelled job, a walltime shorter than a point and a killed sweep lose nothing."""
+"""`layerbvh sweep --cluster slurm` on a real one-node SLURM cluster (scripts/slurm_local.sh): the table matches a
+local cluster's, and a cancelled job, a walltime shorter than a point and a killed sweep lose nothing."""
 from __future__ import annotations
 
 import json

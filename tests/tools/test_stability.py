@@ -1,4 +1,5 @@
-"""The stability suite (layerbvh_mitsuba.tools.stability.cases): every case passes its stated rule, and the checks catch what they are meant to catch."""
+"""The stability suite (layerbvh_mitsuba.tools.stability.cases): every case passes its stated rule, and the checks
+catch what they are meant to catch."""
 from __future__ import annotations
 
 import numpy as np

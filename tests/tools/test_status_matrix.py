@@ -1,4 +1,5 @@
-"""The README's status matrix (tools/status_matrix.py): every test it names exists, and the README holds what the script writes."""
+"""The README's status matrix (tools/status_matrix.py): every test it names exists, and the README holds what the
+script writes."""
 from __future__ import annotations
 
 from layerbvh_mitsuba import atomic

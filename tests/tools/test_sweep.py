@@ -1,4 +1,5 @@
-"""`layerbvh sweep`: one row per point equal to the single command's, resumable by key, failures as rows, timed points one at a time, an external Dask scheduler."""
+"""`layerbvh sweep`: one row per point equal to the single command's, resumable by key, failures as rows, timed
+points one at a time, an external Dask scheduler."""
 from __future__ import annotations
 
 import json

@@ -1,4 +1,5 @@
-"""The third-party A/B script: one row per scene with a verdict, instanced scenes traced, refusals by plugin name, atomic outputs (project scenes only)."""
+"""The third-party A/B script: one row per scene with a verdict, instanced scenes traced, refusals by plugin name,
+atomic outputs (project scenes only)."""
 from __future__ import annotations
 
 import json

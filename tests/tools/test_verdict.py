@@ -1,4 +1,7 @@
-"""The verdict on a full-depth multi-shape scene whose same-seed paths diverge: unmodified it must come out "agrees" and state a power (MDE) under 1%; ours with every reflectance 2% brighter, a dropped shape or another max_depth, at the same size, spp, depth and traversal, must come out "differs"; the compare report and page say what was tested and what it rules out."""
+"""The verdict on a full-depth multi-shape scene whose same-seed paths diverge: unmodified it must come out "agrees"
+and state a power (MDE) under 1%; ours with every reflectance 2% brighter, a dropped shape or another max_depth, at
+the same size, spp, depth and traversal, must come out "differs"; the compare report and page say what was tested and
+what it rules out."""
 from __future__ import annotations
 
 import json

@@ -1,4 +1,6 @@
-"""What every estimator uses and none owns: the render's tracing context, the loop in either mode, the power heuristic, stock's depth properties, an emitter sample with our visibility test, and hide_emitters' walk past area emitters."""
+"""What every estimator uses and none owns: the render's tracing context, the loop in either mode, the power
+heuristic, stock's depth properties, an emitter sample with our visibility test, and hide_emitters' walk past area
+emitters."""
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -1,4 +1,5 @@
-"""Stock `depth`'s estimator (the distance to each camera ray's closest hit, 0 where it misses), its one query ours. Follows src/integrators/depth.cpp @ v3.9.1."""
+"""Stock `depth`'s estimator (the distance to each camera ray's closest hit, 0 where it misses), its one query ours.
+Follows src/integrators/depth.cpp @ v3.9.1."""
 from __future__ import annotations
 
 import drjit as dr

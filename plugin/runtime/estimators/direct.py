@@ -1,4 +1,5 @@
-"""Stock `direct`'s estimator (direct illumination: emitter and BSDF sampling combined by MIS), every ray through the given queries. Follows src/integrators/direct.cpp @ v3.9.1."""
+"""Stock `direct`'s estimator (direct illumination: emitter and BSDF sampling combined by MIS), every ray through the
+given queries. Follows src/integrators/direct.cpp @ v3.9.1."""
 from __future__ import annotations
 
 import drjit as dr

@@ -1,4 +1,6 @@
-"""The random walk that stock `volpath` and `volpathmis` share (free flights, null and real collisions, surfaces, shadow rays through media and null surfaces), with what a path's weight is left to a strategy. Follows src/integrators/volpath.cpp and volpathmis.cpp @ v3.9.1."""
+"""The random walk that stock `volpath` and `volpathmis` share (free flights, null and real collisions, surfaces,
+shadow rays through media and null surfaces), with what a path's weight is left to a strategy. Follows
+src/integrators/volpath.cpp and volpathmis.cpp @ v3.9.1."""
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -1,4 +1,5 @@
-"""Stock `path`'s estimator (unidirectional path tracing with MIS), every ray through the given queries. Follows src/integrators/path.cpp @ v3.9.1."""
+"""Stock `path`'s estimator (unidirectional path tracing with MIS), every ray through the given queries. Follows
+src/integrators/path.cpp @ v3.9.1."""
 from __future__ import annotations
 
 from dataclasses import dataclass

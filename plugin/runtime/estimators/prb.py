@@ -1,4 +1,5 @@
-"""Stock `prb`'s estimator (path replay backpropagation: a path tracer with MIS whose paths are traced again for their derivatives), every ray query ours. Follows mitsuba/python/ad/integrators/prb.py @ v3.9.1."""
+"""Stock `prb`'s estimator (path replay backpropagation: a path tracer with MIS whose paths are traced again for
+their derivatives), every ray query ours. Follows mitsuba/python/ad/integrators/prb.py @ v3.9.1."""
 from __future__ import annotations
 
 from dataclasses import dataclass

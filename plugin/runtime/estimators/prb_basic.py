@@ -1,4 +1,5 @@
-"""Stock `prb_basic`'s estimator (path replay backpropagation without emitter sampling, MIS or Russian roulette), every ray query ours. Follows mitsuba/python/ad/integrators/prb_basic.py @ v3.9.1."""
+"""Stock `prb_basic`'s estimator (path replay backpropagation without emitter sampling, MIS or Russian roulette),
+every ray query ours. Follows mitsuba/python/ad/integrators/prb_basic.py @ v3.9.1."""
 from __future__ import annotations
 
 import drjit as dr

@@ -1,4 +1,6 @@
-"""Stock `prbvolpath`'s estimator (path replay backpropagation through participating media: free flights, null and real collisions, surfaces, emitter sampling with ratio-tracked transmittance), every ray query ours. Follows mitsuba/python/ad/integrators/prbvolpath.py @ v3.9.1."""
+"""Stock `prbvolpath`'s estimator (path replay backpropagation through participating media: free flights, null and
+real collisions, surfaces, emitter sampling with ratio-tracked transmittance), every ray query ours. Follows
+mitsuba/python/ad/integrators/prbvolpath.py @ v3.9.1."""
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -1,4 +1,5 @@
-"""Stock `ptracer`'s estimator (light paths traced from the emitters and splatted onto the film through the sensor), every ray query ours. Follows src/integrators/ptracer.cpp @ v3.9.1."""
+"""Stock `ptracer`'s estimator (light paths traced from the emitters and splatted onto the film through the sensor),
+every ray query ours. Follows src/integrators/ptracer.cpp @ v3.9.1."""
 from __future__ import annotations
 
 import drjit as dr

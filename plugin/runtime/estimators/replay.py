@@ -1,4 +1,6 @@
-"""What the path-replay estimators (prb, prb_basic) share: the derivative half of a vertex, where the detached radiance a path carries is re-attached to the scene's parameters and pushed forward or back (Vicini et al. 2021, "Path Replay Backpropagation", sec. 4)."""
+"""What the path-replay estimators (prb, prb_basic) share: the derivative half of a vertex, where the detached
+radiance a path carries is re-attached to the scene's parameters and pushed forward or back (Vicini et al. 2021,
+"Path Replay Backpropagation", sec. 4)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -55,12 +57,12 @@ def camera_hits(tr: Tracing, ray, active, hide_emitters: bool):
 
 
 def reattached_reflection(queries, L, si, bsdf, ray_next, pi_next, active_next, flags):
-    """The radiance reflected at vertex `si` with its derivatives attached: `L`, the detached radiance still to come along the path, scaled by the
-    relative derivative of BSDF x cosine in the sampled direction, and by that of the solid-angle
-    to area Jacobian where the next vertex `pi_next` (found by `ray_next`) moves. That next vertex
-    is computed detached (only the current one's motion counts), the rest with derivatives.
-    `flags`: what the next vertex's surface interaction computes (prb: Minimal; prb_basic: All),
-    through `queries` (RayQueries.surface)."""
+    """The radiance reflected at vertex `si` with its derivatives attached: `L`, the detached
+    radiance still to come along the path, scaled by the relative derivative of BSDF x cosine in the
+    sampled direction, and by that of the solid-angle to area Jacobian where the next vertex
+    `pi_next` (found by `ray_next`) moves. That next vertex is computed detached (only the current
+    one's motion counts), the rest with derivatives. `flags`: what the next vertex's surface
+    interaction computes (prb: Minimal; prb_basic: All), through `queries` (RayQueries.surface)."""
     si_next = queries.surface(pi_next, ray_next, flags, active_next)
     with dr.resume_grad():
         J = area_jacobian(si.p, si_next.p, si_next.n, active_next & si_next.is_valid())

@@ -1,4 +1,5 @@
-"""Stock `volpath`'s estimator (volumetric path tracing with participating media): the shared walk (media.MediaWalk) with a path weight that is a throughput. Follows src/integrators/volpath.cpp @ v3.9.1."""
+"""Stock `volpath`'s estimator (volumetric path tracing with participating media): the shared walk (media.MediaWalk)
+with a path weight that is a throughput. Follows src/integrators/volpath.cpp @ v3.9.1."""
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -1,4 +1,5 @@
-"""Stock `volpathmis`'s estimator (volumetric path tracing with spectral MIS over path-space weights): the shared walk (media.MediaWalk) with a path weight kept as p/f ratios. Follows src/integrators/volpathmis.cpp @ v3.9.1."""
+"""Stock `volpathmis`'s estimator (volumetric path tracing with spectral MIS over path-space weights): the shared
+walk (media.MediaWalk) with a path weight kept as p/f ratios. Follows src/integrators/volpathmis.cpp @ v3.9.1."""
 from __future__ import annotations
 
 from dataclasses import dataclass

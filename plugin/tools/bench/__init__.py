@@ -1,1 +1,2 @@
-"""Benchmark tools: meshes and rays, stress scenes, ray recording, the traversal and scaling benchmarks, BENCHMARKS.md."""
+"""Benchmark tools: meshes and rays, stress scenes, ray recording, the traversal and scaling benchmarks,
+BENCHMARKS.md."""

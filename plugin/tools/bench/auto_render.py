@@ -1,4 +1,5 @@
-"""auto against per_ray on whole renders of multi-shape scenes at their own depth: first run (empty caches) and later run, each in a fresh process.
+"""auto against per_ray on whole renders of multi-shape scenes at their own depth: first run (empty
+caches) and later run, each in a fresh process.
 
     .venv/bin/python scripts/bench_auto.py [--scenes S.xml ...] [--res W H] [--spp N] [--rounds R]
         [--code DIR] [--json OUT]

@@ -1,4 +1,6 @@
-"""The GPU check of the locality model, the half that runs here: record a scene's rays, replay them through the model for the GPU's preset, and write what the device half (scripts/gpu_check_device.py) needs: the rays, the triangles, the replay's hits and the model's prediction."""
+"""The GPU check of the locality model, the half that runs here: record a scene's rays, replay them through the model
+for the GPU's preset, and write what the device half (scripts/gpu_check_device.py) needs: the rays, the triangles,
+the replay's hits and the model's prediction."""
 from __future__ import annotations
 
 import argparse

@@ -1,4 +1,5 @@
-"""BENCHMARKS.md's GPU section: the tables of a GPU check's folder (scripts/gpu_check.sh's device half: measured_<backend>.json, model.json and its --kernels listings)."""
+"""BENCHMARKS.md's GPU section: the tables of a GPU check's folder (scripts/gpu_check.sh's device half:
+measured_<backend>.json, model.json and its --kernels listings)."""
 from __future__ import annotations
 
 import argparse

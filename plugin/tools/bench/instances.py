@@ -1,4 +1,5 @@
-"""Instancing benchmark: the two-level BVH against the same scene flattened into world-space triangles, and Embree both ways: speed, agreement and memory.
+"""Instancing benchmark: the two-level BVH against the same scene flattened into world-space
+triangles, and Embree both ways: speed, agreement and memory.
 
     .venv/bin/python scripts/bench_instances.py [--scene scenes/instanced_bunnies.xml] [--rays N]
         [--runs R] [--height H] [--json OUT]

@@ -1,4 +1,5 @@
-"""Cost of one walk-kernel iteration per branching: LLVM IR instructions by branch, packet iterations, SIMD use and ns per packet-iteration."""
+"""Cost of one walk-kernel iteration per branching: LLVM IR instructions by branch, packet iterations, SIMD use and
+ns per packet-iteration."""
 from __future__ import annotations
 
 import argparse

@@ -1,4 +1,5 @@
-"""`layerbvh locality`: a scene's recorded rays replayed through the locality model (layerbvh.locality) by kind, mode, warp width, preset and treelet height; DIR/locality.json, locality.png and summary.md."""
+"""`layerbvh locality`: a scene's recorded rays replayed through the locality model (layerbvh.locality) by kind,
+mode, warp width, preset and treelet height; DIR/locality.json, locality.png and summary.md."""
 from __future__ import annotations
 
 import io

@@ -1,4 +1,5 @@
-"""Whether the locality model behind a verdict was checked, and against what: valgrind's cache simulator for a CPU preset (the committed docs/bench/cachegrind_*.json), nothing yet for a GPU preset."""
+"""Whether the locality model behind a verdict was checked, and against what: valgrind's cache simulator for a CPU
+preset (the committed docs/bench/cachegrind_*.json), nothing yet for a GPU preset."""
 from __future__ import annotations
 
 import json

@@ -1,4 +1,5 @@
-"""Record the rays a layerbvh render of a Mitsuba scene traces (camera, bounces by lobe, shadow; or a particle tracer's light rays) into an .npz for the benchmark."""
+"""Record the rays a layerbvh render of a Mitsuba scene traces (camera, bounces by lobe, shadow; or a particle
+tracer's light rays) into an .npz for the benchmark."""
 from __future__ import annotations
 
 import argparse

@@ -1,4 +1,5 @@
-"""Turn benchmark JSON (bench_traversal.py, bench_scaling.py) into BENCHMARKS.md with its plots, and the headline of docs/results.md."""
+"""Turn benchmark JSON (bench_traversal.py, bench_scaling.py) into BENCHMARKS.md with its plots, and the headline of
+docs/results.md."""
 from __future__ import annotations
 
 import argparse

@@ -1,4 +1,5 @@
-"""Scaling benchmark: trace time, build time and memory of every mode as the stress scene grows from 10k to 5M triangles."""
+"""Scaling benchmark: trace time, build time and memory of every mode as the stress scene grows from 10k to 5M
+triangles."""
 from __future__ import annotations
 
 import argparse

@@ -1,4 +1,5 @@
-"""A traversal benchmark's timed configurations and the figures made of them: agreement between modes, the result rows with their ratios, the printed table."""
+"""A traversal benchmark's timed configurations and the figures made of them: agreement between modes, the result
+rows with their ratios, the printed table."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field

@@ -1,4 +1,5 @@
-"""The stability suite's cases: extreme geometry against Embree (ray level) and stiff light transport against stock Mitsuba (image level).
+"""The stability suite's cases: extreme geometry against Embree (ray level) and stiff light
+transport against stock Mitsuba (image level).
 
 Every case is a function `case(scale) -> CaseResult` registered in CASES; `scale` multiplies the
 ray count or the image size (the tests run scale 1, `scripts/stability_report.py` more). A case

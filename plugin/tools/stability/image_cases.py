@@ -1,4 +1,5 @@
-"""Stability cases at the image level: our layerbvh integrator in layer_sorted (treelets of 2 levels) against stock path on the scenes in scenes/stability/, with a negative control per scene."""
+"""Stability cases at the image level: our layerbvh integrator in layer_sorted (treelets of 2 levels) against stock
+path on the scenes in scenes/stability/, with a negative control per scene."""
 from __future__ import annotations
 
 import math

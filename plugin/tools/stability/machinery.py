@@ -1,4 +1,6 @@
-"""The stability suite's registry of cases (`case`, CASES, CaseResult) and the ray-level machinery its cases share: test meshes, random rays, our hits in every mode, Embree's, and the comparison against both Embree modes with the exact float64 referee."""
+"""The stability suite's registry of cases (`case`, CASES, CaseResult) and the ray-level machinery its cases share:
+test meshes, random rays, our hits in every mode, Embree's, and the comparison against both Embree modes with the
+exact float64 referee."""
 from __future__ import annotations
 
 import zlib

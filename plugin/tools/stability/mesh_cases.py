@@ -1,4 +1,5 @@
-"""Stability cases at the ray level on whole meshes and inputs: watertight edges and vertices of closed meshes, self-hits of spawned rays, tiny meshes and bad data."""
+"""Stability cases at the ray level on whole meshes and inputs: watertight edges and vertices of closed meshes,
+self-hits of spawned rays, tiny meshes and bad data."""
 from __future__ import annotations
 
 

@@ -1,4 +1,5 @@
-"""Stability cases at the ray level on float precision: scaled and moved scenes, sliver and degenerate triangles, coplanar overlap, axis-aligned and grazing rays, each against Embree and an exact float64 referee."""
+"""Stability cases at the ray level on float precision: scaled and moved scenes, sliver and degenerate triangles,
+coplanar overlap, axis-aligned and grazing rays, each against Embree and an exact float64 referee."""
 from __future__ import annotations
 
 

@@ -1,4 +1,5 @@
-"""Run every stability case (scripts/stability_cases.py) and write STABILITY.md: case, rays or pixels tried, disagreements with Embree (default and robust), NaN/Inf, result.
+"""Run every stability case (scripts/stability_cases.py) and write STABILITY.md: case, rays or
+pixels tried, disagreements with Embree (default and robust), NaN/Inf, result.
 
     .venv/bin/python scripts/stability_report.py [--scale S] [--cases NAME ...] [--out STABILITY.md] [--json OUT.json]
 

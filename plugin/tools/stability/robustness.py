@@ -1,4 +1,5 @@
-"""The robustness cases of the command line: what a user or a hostile tester does, run as they would (a subprocess), each with its expected outcome.
+"""The robustness cases of the command line: what a user or a hostile tester does, run as they would
+(a subprocess), each with its expected outcome.
 
 Every case is a function `case() -> Outcome` registered in CASES. It runs `layerbvh` in a
 fresh process on small scenes written to a temporary folder, then checks the exit code, the

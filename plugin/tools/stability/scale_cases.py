@@ -1,4 +1,5 @@
-"""The extreme-scale referee (issue 56 item 2): a scene whose image does not depend on its scale, rendered by ours and by stock from 1e-15 to 1e18, each against the scene's render at scale 1."""
+"""The extreme-scale referee (issue 56 item 2): a scene whose image does not depend on its scale, rendered by ours
+and by stock from 1e-15 to 1e18, each against the scene's render at scale 1."""
 from __future__ import annotations
 
 import math

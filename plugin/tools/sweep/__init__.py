@@ -1,1 +1,2 @@
-"""`layerbvh sweep`: the grid of scenes x configurations on Dask, one process per point, the merged table, SLURM workers."""
+"""`layerbvh sweep`: the grid of scenes x configurations on Dask, one process per point, the merged table, SLURM
+workers."""

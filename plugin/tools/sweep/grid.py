@@ -1,4 +1,5 @@
-"""`layerbvh sweep`: a grid of scenes × configurations run as Dask tasks, each point in a fresh process, resumable by a content key, gathered into one table."""
+"""`layerbvh sweep`: a grid of scenes × configurations run as Dask tasks, each point in a fresh process, resumable by
+a content key, gathered into one table."""
 from __future__ import annotations
 
 import glob

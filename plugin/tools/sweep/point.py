@@ -1,4 +1,5 @@
-"""One sweep point in its own process: runs the job (compare, converge, bench, third-party check) and writes its figures to result.json.
+"""One sweep point in its own process: runs the job (compare, converge, bench, third-party check)
+and writes its figures to result.json.
 
     python -m layerbvh_mitsuba.tools.sweep.point POINT.json OUT_DIR
 

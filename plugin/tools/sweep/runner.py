@@ -1,4 +1,5 @@
-"""Running a sweep's points as Dask tasks (a local cluster, a scheduler file or SLURM), each point in a fresh process under time and memory limits, its result stored as it arrives."""
+"""Running a sweep's points as Dask tasks (a local cluster, a scheduler file or SLURM), each point in a fresh process
+under time and memory limits, its result stored as it arrives."""
 from __future__ import annotations
 
 import contextlib

@@ -1,4 +1,5 @@
-"""`layerbvh sweep --cluster slurm`: the sweep's Dask workers as SLURM jobs (dask-jobqueue), their settings, the job script, and a point's share of its job's walltime."""
+"""`layerbvh sweep --cluster slurm`: the sweep's Dask workers as SLURM jobs (dask-jobqueue), their settings, the job
+script, and a point's share of its job's walltime."""
 from __future__ import annotations
 
 import os

@@ -1,4 +1,5 @@
-"""A sweep's points (job, scene, settings) and their content keys, and the results stored under them: what a resumed sweep finds done."""
+"""A sweep's points (job, scene, settings) and their content keys, and the results stored under them: what a resumed
+sweep finds done."""
 from __future__ import annotations
 
 import hashlib

@@ -1,4 +1,5 @@
-"""The sweep's one table (results.csv, results.json, summary.md, index.html) and the documents merged from its points (converge per scene, bench.json)."""
+"""The sweep's one table (results.csv, results.json, summary.md, index.html) and the documents merged from its points
+(converge per scene, bench.json)."""
 from __future__ import annotations
 
 import csv
