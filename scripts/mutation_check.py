@@ -384,6 +384,13 @@ MUTATIONS = (
              "EMPTY_TAG = -1  # line numbers are >= 0 because addresses are\n",
              "EMPTY_TAG = -1  # line numbers are >= 0 because addresses are" + " (and a comment that runs on)" * 3 + "\n",
              ("tests/tools/test_code_layout.py::test_lines_are_at_most_120_columns",)),
+    Mutation("driver_methods_copied", "each integrator class gets copies of the driver's methods instead of "
+             "inheriting them",
+             "plugin/runtime/registry.py",
+             'type(name, (driver,), {**names, "ESTIMATOR": estimator, "PLUGIN": plugin})',
+             'type(name, (driver,), {**{k: v for k, v in vars(driver).items() if callable(v) and k != "__init__"}, '
+             '**names, "ESTIMATOR": estimator, "PLUGIN": plugin})',
+             ("tests/runtime/test_mitsuba_backend.py::test_every_integrator_is_a_subclass_of_the_one_driver_class",)),
     Mutation("wide_drops_farthest_child", "a wide node pushes one entry fewer than it hits (the farthest hit child "
              "is dropped)",
              "layerbvh/walk.py",
@@ -531,7 +538,7 @@ MUTATIONS = (
     Mutation("differentiable_render_not_held", "a differentiable render pauses the collector only inside each "
              "`sample`, not across Mitsuba's render_forward/render_backward (Dr.Jit then aborts)",
              "plugin/runtime/registry.py",
-             '                                           "render_forward": _DRIVER["render_forward_held"],\n                                           "render_backward": _DRIVER["render_backward_held"]}\n',
+             '                     "render_forward": driver.render_forward_held,\n                     "render_backward": driver.render_backward_held}\n',
              "}\n",
              ("tests/runtime/test_held_instances.py::test_a_differentiable_render_holds_the_collector_across_forward_and_backward",
               "tests/runtime/test_prb.py::test_gradients_same_seed_as_stock[prb-cbox-layer_sorted]")),

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import mitsuba as mi
 
-from layerbvh_mitsuba.runtime.driver import LayerBVHIntegrator
+from layerbvh_mitsuba.runtime.driver import driver_class
 from layerbvh_mitsuba.runtime.estimators.depth import DepthEstimator
 from layerbvh_mitsuba.runtime.estimators.direct import DirectEstimator
 from layerbvh_mitsuba.runtime.estimators.path import PathEstimator
@@ -30,8 +30,6 @@ PLUGINS = {"layerbvh": ("LayerBVHIntegrator", PathEstimator),
 STANDS_IN_FOR = {estimator.PLUGIN: plugin for plugin, (_, estimator) in PLUGINS.items()}
 
 _classes: dict[tuple[str, str], type] = {}
-# The driver's own attributes, given to each variant's class (not its __dict__ and __weakref__ slots).
-_DRIVER = {k: v for k, v in vars(LayerBVHIntegrator).items() if k not in ("__dict__", "__weakref__")}
 
 
 def handles_media(estimator: str) -> bool:
@@ -59,13 +57,12 @@ def is_jit_variant(variant: str | None) -> bool:
 
 
 def integrator_class(plugin: str = "layerbvh") -> type:
-    """Our integrator `plugin` as a class of the active variant: that variant's
-    mi.SamplingIntegrator (mi.AdjointIntegrator for an estimator that is ADJOINT, whose `sample`
-    is then the driver's `sample_adjoint`; Mitsuba's Python RBIntegrator for one that is
-    DIFFERENTIABLE, whose `sample` is `sample_differentiable` and whose render, render_forward
-    and render_backward are Mitsuba's) with the driver's methods (Mitsuba's base classes exist
-    once per variant, and nanobind classes take a single base, so the driver cannot be a second
-    base), its estimator as `ESTIMATOR`; `_base` is that base class."""
+    """Our integrator `plugin` as a class of the active variant: a subclass naming its estimator
+    (`ESTIMATOR`) of the render driver (driver.driver_class) over that variant's
+    mi.SamplingIntegrator; over mi.AdjointIntegrator for an estimator that is ADJOINT, whose
+    `sample` is then the driver's `sample_adjoint`; over Mitsuba's Python RBIntegrator for one
+    that is DIFFERENTIABLE, whose `sample` is `sample_differentiable` and whose render,
+    render_forward and render_backward are Mitsuba's, held (held_instances)."""
     variant = mi.variant()
     if not is_jit_variant(variant):
         raise ValueError(f"the {plugin} integrator needs a JIT variant (llvm_* or cuda_*); the active variant is "
@@ -74,18 +71,18 @@ def integrator_class(plugin: str = "layerbvh") -> type:
     if cls is None:
         name, estimator = PLUGINS[plugin]
         if getattr(estimator, "ADJOINT", False):
-            base, methods = mi.AdjointIntegrator, {**_DRIVER, "sample": _DRIVER["sample_adjoint"]}
+            driver = driver_class(mi.AdjointIntegrator)
+            names = {"sample": driver.sample_adjoint}
         elif getattr(estimator, "DIFFERENTIABLE", False):
             # (Mitsuba reloads its Python integrators per variant: this variant's RBIntegrator.)
             from mitsuba.ad.integrators.common import RBIntegrator  # local: exists once a JIT variant is set
-            base, methods = RBIntegrator, {**_DRIVER, "sample": _DRIVER["sample_differentiable"],
-                                           "render": _DRIVER["render_differentiable"],
-                                           "render_forward": _DRIVER["render_forward_held"],
-                                           "render_backward": _DRIVER["render_backward_held"]}
+            driver = driver_class(RBIntegrator)
+            names = {"sample": driver.sample_differentiable, "render": driver.render_differentiable,
+                     "render_forward": driver.render_forward_held,
+                     "render_backward": driver.render_backward_held}
         else:
-            base, methods = mi.SamplingIntegrator, _DRIVER
-        cls = _classes[(plugin, variant)] = type(name, (base,), {**methods, "_base": base, "ESTIMATOR": estimator,
-                                                                 "PLUGIN": plugin})
+            driver, names = driver_class(mi.SamplingIntegrator), {}
+        cls = _classes[(plugin, variant)] = type(name, (driver,), {**names, "ESTIMATOR": estimator, "PLUGIN": plugin})
     return cls
 
 

@@ -166,3 +166,23 @@ def test_kernels_do_not_multiply_with_path_depth(traversal, loop):
     assert counts[16] <= counts[4] + 12 and counts[48] <= counts[16] + 2, counts
     if loop == "megakernel":
         assert counts[48] <= 4, f"one kernel per render (plus film and sampler set-up): {counts}"
+
+
+def test_every_integrator_is_a_subclass_of_the_one_driver_class():
+    """The render driver is a class (issue 58): each of our integrators is a subclass of the driver
+    over its Mitsuba base (runtime/driver.py's class statement, one per base), which defines the
+    methods; the integrator's class adds its estimator and the aliases of its kind of `sample`
+    and render, no method of its own. `super()` reaches the base: Mitsuba's properties parse."""
+    from layerbvh_mitsuba.runtime.driver import driver_class
+    from layerbvh_mitsuba.runtime.registry import PLUGINS, integrator_class
+    aliases = {"sample", "render", "render_forward", "render_backward"}
+    for plugin, (name, estimator) in PLUGINS.items():
+        cls = integrator_class(plugin)
+        driver = cls.__mro__[1]
+        assert cls.__name__ == name and cls.ESTIMATOR is estimator and driver is driver_class(cls._base), plugin
+        assert driver.__qualname__.endswith("<locals>.LayerBVHIntegrator") and "scene_state" in vars(driver)
+        own = {k for k, v in vars(cls).items() if callable(v) and not isinstance(v, type)}
+        assert own <= aliases, (plugin, own - aliases)
+        assert all(getattr(cls, k) is vars(driver).get(getattr(cls, k).__name__) for k in own), plugin
+    integ = mi.load_dict({"type": "layerbvh", "max_depth": 3, "traversal": "per_ray"})
+    assert integ.estimator.max_depth == 3 and str(integ).startswith("LayerBVHIntegrator[max_depth=3,")

@@ -173,8 +173,8 @@ def test_estimators_import_nothing_of_the_driver():
 
 def test_no_init_called_by_name_across_classes():
     """`Base.__init__(self, ...)` ties a class to another by name (and once hid which class an
-    integrator was): call super().__init__, or compose. (The driver's `self._base.__init__` is the
-    variant's nanobind base, an attribute, not a name.)"""
+    integrator was): call super().__init__, or compose (the render driver calls super().__init__:
+    runtime/driver.py's class statement over each variant's base)."""
     bad = []
     for n, path in MODULES.items():
         for node in ast.walk(ast.parse(path.read_text())):
