@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import drjit as dr
 
-from .layout import (FAR_COORD, INST_FLOATS, INST_ROOT, INST_TO_OBJECT, NODE_BOX_HI, NODE_BOX_LO, NODE_FLOATS, NODE_LINK, TRI_FACE,
-                     TRI_FLOATS, TRI_NORMAL, TRI_VERTEX, NodeFormat)
+from .layout import (FAR_COORD, INST_FLOATS, INST_ROOT, INST_TO_OBJECT, NODE_BOX_HI, NODE_BOX_LO, NODE_FLOATS,
+                     NODE_LINK, TRI_FACE, TRI_FLOATS, TRI_NORMAL, TRI_VERTEX, NodeFormat)
 
 # Ize 2013: scaling a box's far distance by 1 + 2*gamma(3) makes the float slab test conservative.
 _GAMMA3 = 3 * 2.0 ** -24 / (1 - 3 * 2.0 ** -24)

@@ -187,7 +187,8 @@ def instanced_layout(groups: list[Group], instances: list[Instance], height: int
         nodes=np.concatenate(nodes), leaves=np.concatenate(leaves),
         tris=np.concatenate(tris) if tris else np.zeros(0, np.float32),
         treelet_first=np.concatenate(tre_first + [np.array([n_nodes], np.uint32)]).astype(np.uint32),
-        node_treelet=np.concatenate(node_tre).astype(np.uint32), leaf_treelet=np.concatenate(leaf_tre).astype(np.uint32),
+        node_treelet=np.concatenate(node_tre).astype(np.uint32),
+        leaf_treelet=np.concatenate(leaf_tre).astype(np.uint32),
         depth=depth, height=height, branching=branching, instances=rec.reshape(-1))
     return combined, InstancedParts(top, group_layouts, node_off, tre_off, tri_off, traced)
 

@@ -224,7 +224,8 @@ class LayerLayout:
 
     def array_bytes(self) -> dict:
         """Bytes of each array the traversal keeps on the device (see DeviceLayout)."""
-        names = ("nodes", "tris", "treelet_first", "node_treelet") + (("instances",) if self.instances is not None else ())
+        names = ("nodes", "tris", "treelet_first", "node_treelet")
+        names += ("instances",) if self.instances is not None else ()
         return {name: int(getattr(self, name).nbytes) for name in names}
 
 
@@ -294,7 +295,8 @@ def check_layout(lay: LayerLayout, n_faces: int, instance_ids: np.ndarray | None
     owner = np.repeat(lay.node_treelet[:, None], k, 1).astype(np.int64)
     assert np.all(lay.node_treelet[payload[inner]] == owner[inner]), "a node link crosses a treelet without an exit"
     assert np.all(payload[is_exit] != owner[is_exit]), "an exit link points to its own treelet"
-    assert np.all(lay.leaf_treelet[payload[is_leaf]] == owner[is_leaf]), "a leaf is not stored with its parent's treelet"
+    assert np.all(lay.leaf_treelet[payload[is_leaf]] == owner[is_leaf]), \
+        "a leaf is not stored with its parent's treelet"
     # Breadth-first inside each treelet: children come after parents; height is respected.
     parents = np.repeat(np.arange(n)[:, None], k, 1)
     assert np.all(payload[inner] > parents[inner]), "a child node precedes its parent"

@@ -6,7 +6,8 @@ import numba
 
 from . import cachesim, memsites, numba_cache
 from .cachesim import cache_access, coalesce
-from .memsites import I_DONE, I_HITS, I_NL, I_SP, S_END, S_KEY_OUT, S_RES_T, S_RES_V, S_SPILL_LINK, S_SPILL_T, S_STATE_OUT, SITES
+from .memsites import (I_DONE, I_HITS, I_NL, I_SP, S_END, S_KEY_OUT, S_RES_T, S_RES_V, S_SPILL_LINK, S_SPILL_T,
+                       S_STATE_OUT, SITES)
 
 # What the kernels do (walk.walk, wavefront._step/_tail): per_ray's kernel writes every ray's hit
 # (or miss) by slot as the ray ends (Results.write); a step and the tail write each closer hit by

@@ -27,8 +27,8 @@ from .layout import TRI_FACE
 from .cachesim import cache_access, coalesce
 from .memsites import (BY_LANE, BY_LINK_NODE, BY_SLOT, F_D, F_INV, F_O, F_SX, F_SY, F_SZ, F_T, F_U, F_V, I_ACTIVE,
                        I_DONE, I_HITS, I_HITW, I_INNER, I_ITER, I_KX, I_KY, I_KZ, I_LEAF, I_LINK, I_NEXT, I_NL,
-                       I_PRIM, I_SP, I_SPILL, I_STEPS, I_TRELET, I_TRI, I_TRI_CUR, I_TRI_END, MAX_PUSH, NO_READ,
-                       SITES, STORE_SITES, S_LOC_R_LINK, S_LOC_R_T, S_LOC_W_LINK, S_LOC_W_T, S_NODE, S_NODE_TRELET, S_PUSH,
+                       I_PRIM, I_SP, I_SPILL, I_STEPS, I_TRELET, I_TRI, I_TRI_CUR, I_TRI_END, MAX_PUSH, NO_READ, SITES,
+                       STORE_SITES, S_LOC_R_LINK, S_LOC_R_T, S_LOC_W_LINK, S_LOC_W_T, S_NODE, S_NODE_TRELET, S_PUSH,
                        S_STACK_LINK, S_STACK_T, S_START, S_TF, S_TRI, _EDGE, _EXIT, _FAR, _FAR_COORD, _FAR_UNIT,
                        _FIRST, _FLT_MAX, _HI0, _HI1, _LEAF, _LK0, _LK1, _LO0, _LO1, _MIN_RCP, _NRM, _PAYLOAD, _POP,
                        _SHIFT, _V0, _V1, _V2)
@@ -497,4 +497,4 @@ def next_treelets(order, ist, finished):
     return keys
 
 
-numba_cache.follow(globals(), cachesim, memsites, memstores, layout, geometry)  # what the replay compiles in (numba_cache)
+numba_cache.follow(globals(), cachesim, memsites, memstores, layout, geometry)  # what the replay compiles in

@@ -254,7 +254,8 @@ class Results:
         self.work = {name: dr.zeros(m.UInt32, n) for name in work_fields(instanced).values()}  # per ray (statistics)
 
     def arrays(self) -> tuple:
-        return (self.t, self.u, self.v, self.prim, *self.work.values()) + ((self.inst,) if self.inst is not None else ())
+        inst = (self.inst,) if self.inst is not None else ()
+        return (self.t, self.u, self.v, self.prim, *self.work.values()) + inst
 
     def fields(self) -> dict:
         """The arrays by name (a PyTree: what a frozen step takes, `over` gives back)."""

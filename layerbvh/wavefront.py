@@ -218,7 +218,8 @@ def _state(m, rec, perm, counters, instanced, words, work) -> RayState:
     first step's, all zero)."""
     s = StateRecords.read(m, rec, perm, instanced, words)
     for i, f in enumerate(work):
-        setattr(s, f, dr.zeros(m.UInt32, dr.width(perm)) if counters is None else dr.gather(m.UInt32, counters[i], perm))
+        setattr(s, f, dr.zeros(m.UInt32, dr.width(perm)) if counters is None
+                else dr.gather(m.UInt32, counters[i], perm))
     return s
 
 
@@ -306,6 +307,6 @@ def trace_inline(m, lay: DeviceLayout, o, d, tmax, active, *, any_hit: bool) -> 
     n = max(dr.width(x) for x in (*o, *d, tmax, active))
     s = RayState.start(m, dr.zeros(m.Float, n) + m.Float(tmax), count_work=False,  # one tmax per lane
                        instanced=lay.instances is not None)
-    out, _ = walk(m, lay, DirectRays(o, d), s, stack=None, cap=local_rows(stack_rows(lay)), bounded=False, any_hit=any_hit,
-                  count_work=False, active=active)
+    out, _ = walk(m, lay, DirectRays(o, d), s, stack=None, cap=local_rows(stack_rows(lay)), bounded=False,
+                  any_hit=any_hit, count_work=False, active=active)
     return out

@@ -36,8 +36,9 @@ from layerbvh_mitsuba.tools import converge
 from layerbvh_mitsuba.tools.bench import locality
 from layerbvh_mitsuba.tools.sweep import grid as sweep
 
-AS_PATH_HELP = (f"the scene's integrator is none of {SUPPORTED} (the projective integrators, volprim_rf_basic, ...): render both sides with path "
-                "anyway, with the settings read from it where it has them (without this, such a scene is refused)")
+AS_PATH_HELP = (f"the scene's integrator is none of {SUPPORTED} (the projective integrators, volprim_rf_basic, ...): "
+                "render both sides with path anyway, with the settings read from it where it has them (without this, "
+                "such a scene is refused)")
 
 
 # Options that several commands take, declared once (issue 42).

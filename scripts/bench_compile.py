@@ -71,8 +71,8 @@ def main() -> int:
             return 1
         res = json.loads(r.stdout.strip().splitlines()[-1])
         if row[0] == "counted":
-            print(f"counted render {row[1]} {row[2]}: {res['distinct']} distinct kernels in {res['launches']} launches, "
-                  f"{res['compiled']} compiled, {res['compile_s']:.1f} s of LLVM")
+            print(f"counted render {row[1]} {row[2]}: {res['distinct']} distinct kernels in "
+                  f"{res['launches']} launches, {res['compiled']} compiled, {res['compile_s']:.1f} s of LLVM")
         else:
             print("stability cases in one process: " + "; ".join(
                 f"{n} {v['new_kernels']} new kernels, {v['compile_s']:.1f} s" for n, v in res.items()))

@@ -83,7 +83,8 @@ def main() -> int:
         for label, d in sides:
             integ = mi.load_dict(d)
             primal = _timed(lambda: dr.eval(mi.render(scene, integrator=integ, spp=a.spp, seed=1)), a.reps)
-            it = float("nan") if a.integrator == "path" else _timed(_iteration(scene, params, key, integ, a.spp), a.reps)
+            it = (float("nan") if a.integrator == "path"
+                  else _timed(_iteration(scene, params, key, integ, a.spp), a.reps))
             base = base or (primal, it)
             print(f"{name:<11} {label:<24} {primal:9.3f} {primal / base[0]:8.2f} {it:12.3f} {it / base[1]:8.2f}",
                   flush=True)

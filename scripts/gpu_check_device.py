@@ -180,8 +180,9 @@ def _kernel_history(configs, args) -> int:
             print(f"K={k} H={h} {mode}: {n:,} rays, {len(hist)} launches, kernels {total:.2f} ms of "
                   f"{wall * 1e3:.2f} ms wall")
             for e in hist:
-                print(f"   {str(e.get('type', '')):22} width {e.get('size', 0):>10,} ops {e.get('operation_count', 0):>6} "
-                      f"in {e.get('input_count', 0):>3} out {e.get('output_count', 0):>3} "
+                print(f"   {str(e.get('type', '')):22} width {e.get('size', 0):>10,} "
+                      f"ops {e.get('operation_count', 0):>6} in {e.get('input_count', 0):>3} "
+                      f"out {e.get('output_count', 0):>3} "
                       f"{float(e.get('execution_time', 0.0)):8.3f} ms", flush=True)
     return 0
 

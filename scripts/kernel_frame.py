@@ -35,7 +35,8 @@ def frame(ir: str, llc: str, cpu: str) -> dict:
         src.write_text(ir)
         run = subprocess.run([llc, "-O2", f"-mcpu={cpu}", str(src), "-o", str(out)], capture_output=True, text=True)
         if run.returncode:
-            return {"error": run.stderr.strip().splitlines()[-1] if run.stderr.strip() else f"llc exit {run.returncode}"}
+            said = run.stderr.strip()
+            return {"error": said.splitlines()[-1] if said else f"llc exit {run.returncode}"}
         asm = out.read_text()
     subs = [int(x) for x in re.findall(r"subq\s+\$(\d+),\s*%rsp", asm)]
     allocas = sum(int(n) * (4 if t in ("float", "i32") else 8)

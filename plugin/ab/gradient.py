@@ -226,9 +226,12 @@ class GradientComparison:
 
     def summary(self) -> str:
         z = self.statistical
-        tail = "" if z is None else (f"; paired over {z.renders} same-seed render pairs: backward "
-                                     f"{z.backward['pixels'] - round(z.backward['pass_fraction'] * z.backward['pixels'])}"
-                                     f" of {z.backward['pixels']} components differ")
+        if z is None:
+            tail = ""
+        else:
+            differ = z.backward['pixels'] - round(z.backward['pass_fraction'] * z.backward['pixels'])
+            tail = (f"; paired over {z.renders} same-seed render pairs: backward {differ} of "
+                    f"{z.backward['pixels']} components differ")
         return f"gradient d/d {self.key}: {self.label}{tail}"
 
 

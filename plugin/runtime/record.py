@@ -82,7 +82,8 @@ def load(path) -> tuple[np.ndarray, np.ndarray, dict, dict]:
         z = np.load(path)
         meta = json.loads(bytes(z["meta"]).decode())
         # (a recording made before a kind existed has no arrays of it)
-        rays = {k: (z[f"{k}_o"], z[f"{k}_d"], z[f"{k}_tmax"]) for k in KINDS if f"{k}_o" in z.files and len(z[f"{k}_o"])}
+        rays = {k: (z[f"{k}_o"], z[f"{k}_d"], z[f"{k}_tmax"]) for k in KINDS
+                if f"{k}_o" in z.files and len(z[f"{k}_o"])}
         return z["vertices"], z["faces"].astype(np.int64), rays, meta
     except (OSError, KeyError, ValueError) as e:
         raise ValueError(f"{path}: not a layerbvh ray recording ({e})") from None

@@ -310,7 +310,8 @@ def collect_geometry(scene) -> SceneGeometry:
     pairs = sum(t.instance is not None for t in analytic)
     if pairs > MAX_PER_SHAPE_TESTS:
         raise UnsupportedShapeError(
-            f"the scene's instances place {pairs} analytic shapes (spheres, disks, cylinders, ellipsoids in shapegroups); "
+            f"the scene's instances place {pairs} analytic shapes (spheres, disks, cylinders, ellipsoids in "
+            f"shapegroups); "
             f"the layerbvh backend tests each placement per ray and takes at most {MAX_PER_SHAPE_TESTS}: "
             f"give the shapegroups meshes instead")
     if placements and len(groups[0].faces):

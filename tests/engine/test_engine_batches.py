@@ -23,7 +23,8 @@ def test_batches_change_nothing_but_memory(procedural, mode):
     if mode != "per_ray":  # the entry stacks and queues scale with the batch
         assert b.stats.work_bytes < a.stats.work_bytes / 3
     tmax = np.where(np.isfinite(a.t), a.t * 0.5, 10.0).astype(np.float32)
-    assert np.array_equal(whole.occluded(o, d, tmax, mode=mode).occluded, batched.occluded(o, d, tmax, mode=mode).occluded)
+    assert np.array_equal(whole.occluded(o, d, tmax, mode=mode).occluded,
+                          batched.occluded(o, d, tmax, mode=mode).occluded)
 
 
 def test_batch_size_is_checked(bunny):

@@ -118,7 +118,8 @@ def test_every_mode_returns_the_binary_per_ray_bits(procedural, branching, kind)
         for name in ("prim", "t", "u", "v"):
             a, b = getattr(h, name), getattr(ref, name)
             bad = (a != b) if name == "prim" else (_bits(a) != _bits(b))
-            assert not bad.any(), f"branching {branching} {mode}: {name} differs from binary per_ray on {bad.sum()} rays"
+            assert not bad.any(), (f"branching {branching} {mode}: {name} differs from binary per_ray on "
+                                   f"{bad.sum()} rays")
         occ = wide[tail].occluded(o, d, np.full(len(o), np.inf, np.float32), mode=mode).occluded
         assert np.array_equal(occ, ref_occ), f"branching {branching} {mode}: any-hit differs"
     # Work shown both ways: fewer node visits and loop iterations, more box tests.

@@ -97,7 +97,8 @@ def test_a_shadow_ray_past_float32_range_is_rebuilt():
     si.p = mi.Point3f(1, 2, -3)
     near = mi.Point3f(4, -1, 2)
     whole, again = si.spawn_ray_to(near), extreme_scale.spawn_ray_to(si, near)
-    assert np.array_equal(np.array(whole.d), np.array(again.d)) and np.array_equal(np.array(whole.maxt), np.array(again.maxt))
+    assert np.array_equal(np.array(whole.d), np.array(again.d))
+    assert np.array_equal(np.array(whole.maxt), np.array(again.maxt))
 
 
 def test_a_tiny_scene_offsets_its_rays_as_the_scene_at_unit_size():

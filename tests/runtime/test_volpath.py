@@ -127,8 +127,8 @@ FOG = """<medium id="fog" type="homogeneous"><rgb name="sigma_t" value="0.8"/><r
         </transform><bsdf type="diffuse"><rgb name="reflectance" value="0.2, 0.5, 0.8"/></bsdf>
         <ref name="exterior" id="fog"/></shape>"""
 GLASS = """<emitter type="constant"><rgb name="radiance" value="0.3"/></emitter>
-    <medium id="ink" type="homogeneous"><rgb name="sigma_t" value="0.17, 0.5, 1"/><float name="scale" value="3"/><rgb name="albedo" value="0.8"/>
-        <phase type="isotropic"/></medium>
+    <medium id="ink" type="homogeneous"><rgb name="sigma_t" value="0.17, 0.5, 1"/><float name="scale" value="3"/>
+        <rgb name="albedo" value="0.8"/><phase type="isotropic"/></medium>
     <shape type="ply"><string name="filename" value="{sphere}"/><bsdf type="dielectric"/>
         <ref name="interior" id="ink"/></shape>"""
 # The camera and a point light inside one fog box (the sensor's medium), a small area light too.

@@ -84,7 +84,8 @@ def test_bench_on_recorded_rays(bench_json):
     assert ("shadow", "layer_sorted", 4, 5) in by_mode and ("camera", "per_ray", 2, 2) in by_mode
     # Work shown both ways: the 4-wide tree visits fewer nodes in fewer iterations, with more box tests.
     for kind in ("camera", "first_bounce_diffuse"):
-        per = {r["branching"]: r for r in rows if r["rays"] == kind and r["mode"] == "per_ray" and r["treelet_height"] == 5}
+        per = {r["branching"]: r for r in rows
+               if r["rays"] == kind and r["mode"] == "per_ray" and r["treelet_height"] == 5}
         assert per[4]["inner_per_ray"] < 0.7 * per[2]["inner_per_ray"], kind
         assert per[4]["iterations_per_ray"] < per[2]["iterations_per_ray"], kind
         assert per[4]["box_tests_per_ray"] > per[2]["box_tests_per_ray"] * 0.9, kind

@@ -136,7 +136,8 @@ def test_plugin_top_holds_few_modules_and_the_three_layers():
         assert (PACKAGES["layerbvh_mitsuba"] / layer / "__init__.py").is_file(), layer
 
 
-@pytest.mark.parametrize("name", ["cli", "testing", "tools.sweep.point", "tools.third_party", "tools.stability.image_cases"])
+@pytest.mark.parametrize("name", ["cli", "testing", "tools.sweep.point", "tools.third_party",
+                                  "tools.stability.image_cases"])
 def test_every_ab_user_runs_the_one_comparison(name):
     """The CLI, the pytest helpers, the sweep's points, the third-party table and the stability
     suite import ab.compare.compare; none renders a stock/ours pair of its own (`"type": "path"`

@@ -47,7 +47,8 @@ class Select:
 
 rc = pytest.main(["-q", "-p", "no:layerbvh", "-p", "no:xdist", "-p", "no:cacheprovider", "-p", "no:randomly",
                   *(["--collect-only"] if sys.argv[2] == "collect" else []), "tests/engine"], plugins=[Select()])
-mods = sorted(m for m in sys.modules if m.split(".")[0] in ("mitsuba", "layerbvh_mitsuba") and sys.modules[m] is not None)
+mods = sorted(m for m in sys.modules
+              if m.split(".")[0] in ("mitsuba", "layerbvh_mitsuba") and sys.modules[m] is not None)
 print("RESULT " + json.dumps({"rc": int(rc), "mitsuba_modules": mods, **seen}))
 """
 

@@ -37,5 +37,6 @@ def test_what_is_wrong_is_named():
 
 def test_the_reference_page_lists_every_field():
     page = report_schema.markdown()
-    for field in ("`scene`", "`verdict.label`", "`verdict.same_seed.frac_within`", "`ours.branching`", "`metrics.rmse`"):
+    for field in ("`scene`", "`verdict.label`", "`verdict.same_seed.frac_within`", "`ours.branching`",
+                  "`metrics.rmse`"):
         assert field in page, field

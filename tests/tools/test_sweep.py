@@ -117,7 +117,8 @@ def test_failures_are_rows_and_an_external_scheduler_runs_the_points(tmp_path):
             address = json.loads(sched_file.read_text())["address"]  # the scheduler removes the file when it stops
             procs.append(subprocess.Popen([dask, "worker", "--scheduler-file", sched_file, "--host", "127.0.0.1",
                                            "--nworkers", "1", "--nthreads", "1", "--no-dashboard",
-                                           "--resources", "exclusive=1", "--memory-limit", "0"], stdout=log, stderr=log))
+                                           "--resources", "exclusive=1", "--memory-limit", "0"],
+                                          stdout=log, stderr=log))
             out = tmp_path / "ext"
             assert main(["sweep", str(SCENES / "cbox.xml"), str(bad), "--job", "compare", "--traversal", "per_ray",
                          *TINY, "--out", str(out), "--scheduler", str(sched_file)]) == 1  # a point failed

@@ -49,7 +49,8 @@ def _drop_second_largest_mesh(params):
 @pytest.mark.parametrize("change", ["albedo", "dropped shape", "max_depth"])
 def test_a_real_difference_differs(change):
     """Negative controls at the positive control's settings: each must be rejected."""
-    kw = {"albedo": dict(ours_modify=testing.scaled_reflectances(1.02)), "dropped shape": dict(ours_modify=_drop_second_largest_mesh),
+    kw = {"albedo": dict(ours_modify=testing.scaled_reflectances(1.02)),
+          "dropped shape": dict(ours_modify=_drop_second_largest_mesh),
           "max_depth": dict(ours_props={"max_depth": 3})}[change]
     v = testing.verdict_vs_stock(STAIRCASE, **SIZE, **kw)
     assert v.label == metrics.DIFFERS, v.summary()

@@ -29,8 +29,8 @@ class ReplayState(PathReplay):
 def _textured_area_emitters(scene) -> bool:
     """Whether an emitter is a surface whose emission varies over it: only then does a replayed
     emitter sample need the emitter's own surface interaction (and a ray query to find it)."""
-    return any(mi.has_flag(e.flags(), mi.EmitterFlags.Surface) and mi.has_flag(e.flags(), mi.EmitterFlags.SpatiallyVarying)
-               for e in scene.emitters())
+    return any(mi.has_flag(e.flags(), mi.EmitterFlags.Surface)
+               and mi.has_flag(e.flags(), mi.EmitterFlags.SpatiallyVarying) for e in scene.emitters())
 
 
 class PRBEstimator:

@@ -56,7 +56,8 @@ def main(argv=None) -> int:
         need = gen_stress.estimate_bytes(n)["total"]
         avail = gen_stress.available_bytes()
         if avail is not None and need > avail:
-            print(f"skipping {n:,} triangles: needs about {gen_stress.human(need)}, {gen_stress.human(avail)} available")
+            print(f"skipping {n:,} triangles: needs about {gen_stress.human(need)}, "
+                  f"{gen_stress.human(avail)} available")
             continue
         v, f = stress_mesh(n, args.seed)
         o, d = meshes.incoherent_rays(v, args.rays, seed=args.seed + 2)

@@ -141,8 +141,8 @@ def against_embree(name: str, v, f, o, d, tmax=None, extra: dict | None = None, 
     soft = [f"{k} {val}" for k, (val, zero) in extra.items() if not zero]
     hit_rate = float(np.mean(h.prim != MISS))
     return CaseResult(name, "rays", n, dis[False]["real"], dis[True]["real"], bad, passed, crit,
-                      "; ".join(x for x in [f"{100 * hit_rate:.1f}% hit", f"ties {dis[False]['ties']} / {dis[True]['ties']}",
-                                            *soft, notes] if x),
+                      "; ".join(x for x in [f"{100 * hit_rate:.1f}% hit",
+                                            f"ties {dis[False]['ties']} / {dis[True]['ties']}", *soft, notes] if x),
                       {"mode_diff": mode_diff, "wrong": wrong, "embree_default_vs_robust": own["real"],
                        "ties_default": dis[False]["ties"], "ties_robust": dis[True]["ties"], "hit_rate": hit_rate,
                        **{k: val for k, (val, _) in extra.items()}})

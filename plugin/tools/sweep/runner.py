@@ -185,7 +185,8 @@ def scheduler_address(text: str) -> str:
 
 
 @contextlib.contextmanager
-def dask_client(workers: int | None, scheduler: str | None, slurm: SlurmSettings | None = None, out: Path | None = None):
+def dask_client(workers: int | None, scheduler: str | None, slurm: SlurmSettings | None = None,
+                out: Path | None = None):
     """A client of a new local cluster of `workers` processes, of the scheduler at `scheduler`, or of
     a new cluster of SLURM jobs (`slurm`; its job script goes to `out`)."""
     from distributed import Client  # local: Dask starts only for a sweep

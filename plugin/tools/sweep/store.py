@@ -77,7 +77,8 @@ GENERATED_RAYS = ("coherent", "incoherent")  # bench rays generated over the sce
 def code_digest() -> str:
     """SHA-256 of the engine's and the plugin's Python sources: a result computed by other code is not reused."""
     h = hashlib.sha256()
-    for package, base in (("layerbvh", Path(layerbvh.__file__).parent), ("layerbvh_mitsuba", Path(__file__).parents[2])):
+    packages = (("layerbvh", Path(layerbvh.__file__).parent), ("layerbvh_mitsuba", Path(__file__).parents[2]))
+    for package, base in packages:
         for path in sorted(base.rglob("*.py")):
             h.update(f"{package}/{path.relative_to(base).as_posix()}".encode() + b"\0")
             h.update(hashlib.sha256(path.read_bytes()).digest())
