@@ -9,7 +9,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from . import memsites as ms, memtrace as mt
+from . import memsites as ms, memstores as ms_store, memtrace as mt
 from .bvh import build
 from .inputs import DEFAULT_BRANCHING, DEFAULT_TREELET_HEIGHT
 from .cachesim import C_WRITE_MISSES
@@ -106,7 +106,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     sizes = {"nodes": lay.nodes.nbytes, "tris": lay.tris.nbytes, "treelet_first": lay.treelet_first.nbytes,
              "node_treelet": lay.node_treelet.nbytes, "stack_link": n_all * cap_g * 4, "stack_t": n_all * cap_g * 4,
              "local_link": local_words * 4, "local_t": local_words * 4,
-             **{f"results_{k}": n_all * 4 for k in "t prim u v".split()}}
+             **{f"results_{k}": n_all * 4 for k in "t prim u v".split()}, "valid": n_all, "idx": n_all * 4}
     # The state record's format, as wavefront.trace picks it (the replay flattens instances).
     record_bytes = 4 * StateRecords.words(False, cap_g, n_all)
     compact = record_bytes == 4 * COMPACT_RECORD_WORDS
@@ -120,6 +120,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
         # the next step reads are the ones this step wrote (ping-pong, as Dr.Jit's allocator
         # hands the freed array of the step before to the one after).
         sizes["state_records_out"], sizes["keys"] = n_all * record_bytes, n_all * 4
+        sizes.update({f"ray_{k}": n_all * 4 for k in range(6)})  # the origins and directions the records pack
         start = [("ray_records", RAY_RECORD_BYTES, ms.BY_SLOT), ("state_records", record_bytes, ms.BY_PREVIOUS_LANE)] \
             + ([("node_treelet", 4, ms.BY_LINK_NODE)] if compact else [])
     else:
@@ -172,6 +173,17 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
         mt.run_kernel(rays, warp, preset.units, preset.resident_warps, preset.block_warps, bounded, use_global, cap,
                       any_hit, cap_g, lay.branching, net, *views, *state, *sites, *model)
 
+    # The trace call's passes before its first kernel (wavefront.trace; Dr.Jit launches each as a
+    # kernel, a memset or a compaction): the valid rays' indices; in the layer modes the ray records
+    # packed (state.RayRecords) and the first step's state records written; the results filled.
+    passes = [("valid", n_all, False), ("idx", 4 * n, True)]
+    if layer:
+        passes += [(f"ray_{k}", 4 * n_all, False) for k in range(6)]
+        passes += [("ray_records", RAY_RECORD_BYTES * n_all, True), ("state_records", record_bytes * n, True)]
+    passes += [(f"results_{k}", 4 * n_all, True) for k in ("t", "prim", "u", "v")]
+    for region, nbytes, write in passes if n else ():
+        ms_store.setup_pass(ms.S_SETUP_STORE if write else ms.S_SETUP_LOAD, base[region], nbytes, write,
+                            preset.segment_bytes, 0, tags, stamps, dirty, params, counts, clock, tally, levels_hit)
     kernels, sort_bytes, ray_steps, carried = 0, 0, 0, 0
     if n and not layer:
         launch(order, False, False, cap_g)

@@ -41,19 +41,24 @@ S_END = S_START + 10
 # key and, for a ray that goes on, its state record (both in lane order) and the entries it still
 # holds (above its global stack: walk's spill).
 S_RES_T, S_RES_PRIM, S_RES_U, S_RES_V, S_KEY_OUT, S_STATE_OUT, S_SPILL_LINK, S_SPILL_T = range(S_END, S_END + 8)
-SITES = S_END + 8
+# The trace call's own passes before its first kernel (memstores.setup_passes): what they read and
+# what they write.
+S_SETUP_LOAD, S_SETUP_STORE = S_END + 8, S_END + 9
+SITES = S_END + 10
 SITE_NAMES = ("triangle", "local_read_link", "local_read_t", "stack_link", "stack_t", "node_treelet",
               "treelet_root", "node", "local_write_link", "local_write_t") + tuple(
                   f"local_write_{w}_{j}" for j in range(1, MAX_PUSH) for w in ("link", "t"))
 # What each site is, for the per-kind breakdown of transactions and traffic.
 CATEGORY = {"node": (S_NODE, S_NODE_TRELET, S_TF), "triangle": (S_TRI,), "stack": (S_STACK_LINK, S_STACK_T),
             "local": (S_LOC_R_LINK, S_LOC_R_T, S_LOC_W_LINK, S_LOC_W_T) + tuple(range(S_PUSH, S_START)),
-            "results": (S_RES_T, S_RES_PRIM, S_RES_U, S_RES_V), "step out": (S_KEY_OUT, S_STATE_OUT, S_SPILL_LINK, S_SPILL_T)}
+            "results": (S_RES_T, S_RES_PRIM, S_RES_U, S_RES_V), "step out": (S_KEY_OUT, S_STATE_OUT, S_SPILL_LINK, S_SPILL_T),
+            "set-up": (S_SETUP_LOAD, S_SETUP_STORE)}
 # ... and the start sites are "ray". The local write sites and the sites from S_END on are the
 # replay's stores (the cache model's write-allocate and write-back, cachesim.py); every other site
 # loads. The sites before S_END are the traversal's own traffic (its transactions and DRAM bytes);
 # from S_END on, what the kernels write out, which the between-step bytes (steptraffic) count.
-STORE_SITES = (S_LOC_W_LINK, S_LOC_W_T) + tuple(range(S_PUSH, S_START)) + tuple(range(S_END, SITES))
+STORE_SITES = (S_LOC_W_LINK, S_LOC_W_T) + tuple(range(S_PUSH, S_START)) + tuple(range(S_END, S_SETUP_LOAD)) + (
+    S_SETUP_STORE,)
 # The kernel's loads by kind: the replay's load sites of each, and the work counter the kernel
 # keeps of it (state.WORK); besides these, each kernel a ray takes part in ("steps") loads its ray
 # (and in a wavefront step its state record) once.

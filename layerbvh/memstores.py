@@ -64,4 +64,18 @@ def spill_stores(s, ist, cap_g, site_base, seg_bytes, unit, tags, stamps, dirty,
             levels_hit[k, min(lvl, n_levels)] += 1
 
 
+@numba.njit(cache=True)
+def setup_pass(site, base, nbytes, write, seg_bytes, unit, tags, stamps, dirty, params, counts, clock, tally,
+               levels_hit):
+    """One pass of the trace call over `nbytes` from byte `base` (a fill, the compaction's mask read
+    and index write, the records' packing): one access per segment, in order, counted at `site`."""
+    n_levels = levels_hit.shape[1] - 1
+    first = base - base % seg_bytes
+    for a in range(first, base + nbytes, seg_bytes):
+        lvl = cache_access(tags, stamps, dirty, params, counts, clock, unit, a, write)
+        tally[site, 0] += 1
+        tally[site, 1] += 1
+        levels_hit[site, min(lvl, n_levels)] += 1
+
+
 numba_cache.follow(globals(), cachesim, memsites)  # what these compile in (numba_cache)

@@ -60,14 +60,16 @@ SECTION = "cachegrind"  # BENCHMARKS.md's markers around the section
 RATIO_TOLERANCE, ABSOLUTE_TOLERANCE = 0.15, 0.30
 DISAGREES_EXIT = 3  # (1: a disturbed measurement, 2: no valgrind)
 BLIND_SPOTS = (
-    "The model simulates the traversal kernels' loads and their stores to the local entry stack "
-    "(write-allocate, write-back): the kernels' other stores (state records, hits, the entries a ray "
-    "holds at a step's end), the counting sort and the host's work between steps are not in its "
-    "misses (the layer modes' `sort_bytes` and `result_bytes` stand for them elsewhere); valgrind "
-    "counts every read and write the trace call makes. Valgrind's own simplifications: an inclusive "
-    "LL, LRU everywhere, no prefetching, no TLB, and one cache for all threads (the children run one "
-    "Dr.Jit thread). Read misses (D1mr, DLmr) are held against the model's loads that miss L1 and "
-    "L2, write misses (D1mw, DLmw) against its stores that do.")
+    "The model simulates the traversal kernels' loads and stores (the local entry stack; as a lane ends, "
+    "its hit, and in a step its sort key, state record and held entries; write-allocate, write-back) "
+    "and the trace call's passes before its first kernel (the valid rays' compaction, the ray and "
+    "state records' packing, the results' fill): the sort and compaction between steps and the "
+    "host's work are not in its misses (the layer modes' `sort_bytes` stand for them elsewhere), nor "
+    "are the kernels' stack frames (register spills: scripts/kernel_frame.py); valgrind counts every "
+    "read and write the trace call makes. Valgrind's own simplifications: an inclusive LL, LRU "
+    "everywhere, no prefetching, no TLB, and one cache for all threads (the children run one Dr.Jit "
+    "thread). Read misses (D1mr, DLmr) are held against the model's loads that miss L1 and L2, write "
+    "misses (D1mw, DLmw) against its stores that do.")
 
 
 # -- the child: engine only, runs under valgrind ------------------------------------------------------

@@ -391,6 +391,12 @@ MUTATIONS = (
              'type(name, (driver,), {**{k: v for k, v in vars(driver).items() if callable(v) and k != "__init__"}, '
              '**names, "ESTIMATOR": estimator, "PLUGIN": plugin})',
              ("tests/runtime/test_mitsuba_backend.py::test_every_integrator_is_a_subclass_of_the_one_driver_class",)),
+    Mutation("replay_skips_setup_passes", "the locality replay leaves out the trace call's passes before its first "
+             "kernel (the compaction, the records' packing, the results' fill)",
+             "layerbvh/locality.py",
+             "    for region, nbytes, write in passes if n else ():\n",
+             "    for region, nbytes, write in ():\n",
+             ("tests/tools/test_locality.py::test_two_warps_transactions_by_hand",)),
     Mutation("wide_drops_farthest_child", "a wide node pushes one entry fewer than it hits (the farthest hit child "
              "is dropped)",
              "layerbvh/walk.py",
@@ -647,8 +653,8 @@ MUTATIONS = (
     Mutation("third_party_integrator_ignored", "compare renders the scene's own integrator whatever "
              "CompareSettings.integrator (a SCENE@INTEGRATOR row) asks for",
              "plugin/ab/compare.py",
-             "                         None if s.integrator is None else _stage(STOCK, \"setup\", lambda: load_integrator(mi, s.integrator)))\n",
-             "                         None)\n",
+             "    chosen = None if s.integrator is None else _stage(STOCK, \"setup\", lambda: load_integrator(mi, s.integrator))\n",
+             "    chosen = None\n",
              ("tests/tools/test_third_party.py::test_table_has_a_verdict_per_scene_and_names_refused_plugins",)),
     Mutation("scene_sample_count_zero_rendered", "a scene whose sampler has sample_count 0 (no --spp) is rendered: "
              "the process dies of SIGFPE (issue 56)",

@@ -51,7 +51,7 @@ class CompareSettings:
     statistics_pass: bool = False         # a counted pass: traversal statistics and heat maps
     statistical_step: bool = True         # where same-seed paths diverge, the independent-seed test
     grad: str | None = None               # also compare derivatives w.r.t. this mi.traverse key (ab/gradient.py)
-    integrator: Mapping | None = None     # both sides render this integrator ({"type": "ptracer", ...}), not the scene's
+    integrator: Mapping | None = None     # both sides render this ({"type": "ptracer", ...}), not the scene's
     stock_cache: Path | None = None       # keep stock's image there (stock_cache.cached_stock)
     progress: bool = False
 
@@ -253,8 +253,8 @@ def compare(mi, s: CompareSettings, scene=None) -> Comparison:
     if scene is None:
         scene = _stage(STOCK, "load", lambda: load_scene(mi, str(scene_path), res, **s.params))
     spp = s.spp or scene_spp(scene)
-    path = path_settings(mi, scene, s.as_path, scene_path, s.params,
-                         None if s.integrator is None else _stage(STOCK, "setup", lambda: load_integrator(mi, s.integrator)))
+    chosen = None if s.integrator is None else _stage(STOCK, "setup", lambda: load_integrator(mi, s.integrator))
+    path = path_settings(mi, scene, s.as_path, scene_path, s.params, chosen)
     if s.path_overrides:
         path.props.update(s.path_overrides)
     if s.grad is not None:  # (refused before anything renders)

@@ -256,7 +256,8 @@ def path_settings(mi, scene, as_path: bool = False, scene_path=None, params: dic
     if integ is None:
         return PathSettings({}, "path")
     name = integrator_name(integ)
-    wrapper, inner_xml = scene_wrapper(scene_path, params) if scene_path is not None and integrator is None else (None, {})
+    read = scene_path is not None and integrator is None
+    wrapper, inner_xml = scene_wrapper(scene_path, params) if read else (None, {})
     if wrapper is not None and wrapper.loaded_name != name:
         wrapper = None  # the XML's first <integrator> is not the one loaded (an include): not read
     own = name in ESTIMATORS
@@ -286,8 +287,8 @@ def path_settings(mi, scene, as_path: bool = False, scene_path=None, params: dic
     if not own and wrapper is None:
         shown = ", ".join(f"{k}={v}" for k, v in props.items()) or "path's defaults"
         note = f"the scene's integrator is {name}; both sides rendered with path ({shown})"
-    return PathSettings(props, name if wrapper is None else wrapper.name, as_path=not own and wrapper is None, note=note, wrapper=wrapper,
-                        estimator=estimator)
+    return PathSettings(props, name if wrapper is None else wrapper.name, as_path=not own and wrapper is None,
+                        note=note, wrapper=wrapper, estimator=estimator)
 
 
 def path_props(mi, scene) -> dict:

@@ -198,8 +198,8 @@ def independent_seed_test(mi, scene_path, res: tuple[int, int], spp: int, stock:
     wrapped = (lambda integ: integ) if wrap is None else (lambda integ: load_integrator(mi, wrap(integ)))
     stock_int, ours_int = wrapped(stock), wrapped(ours)
     stock_seed, ours_seed = independent_seeds(seed)
-    key = (str(scene_path), Path(scene_path).stat().st_mtime_ns, tuple(res), spp, stock_seed, repr(sorted((params or {}).items())), repr(stock),
-           None if wrap is None else repr(wrap(stock)))
+    key = (str(scene_path), Path(scene_path).stat().st_mtime_ns, tuple(res), spp, stock_seed,
+           repr(sorted((params or {}).items())), repr(stock), None if wrap is None else repr(wrap(stock)))
     a = _STOCK_MOMENTS.get(key)
     if a is None:
         a = _STOCK_MOMENTS[key] = pixel_moments(mi, scene, stock_int, spp, stock_seed)
@@ -207,8 +207,9 @@ def independent_seed_test(mi, scene_path, res: tuple[int, int], spp: int, stock:
             _STOCK_MOMENTS.pop(next(iter(_STOCK_MOMENTS)))
     b = pixel_moments(mi, ours_scene, ours_int, spp, ours_seed)
     panels = metrics.STOKES_PANELS if _stokes(stock_int) else ("",)
-    return StatisticalStep(resolution=tuple(res), spp=spp, tests=hypotheses.independent(a, b, hypotheses.TILE, len(panels)),
-                           seconds=time.perf_counter() - t0, panels=panels, ours_stats=ours.last_stats)
+    tests = hypotheses.independent(a, b, hypotheses.TILE, len(panels))
+    return StatisticalStep(resolution=tuple(res), spp=spp, tests=tests, seconds=time.perf_counter() - t0, panels=panels,
+                           ours_stats=ours.last_stats)
 
 
 # Stock's independent-seed moments by (scene file, film, spp, seed, $parameters, integrator):

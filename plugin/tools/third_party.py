@@ -280,7 +280,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--timeout", type=float, default=300.0, help="seconds per scene (default 300)")
     p.add_argument("--md", help="also write the markdown table here (atomically)")
     p.add_argument("--json", help="write the raw figures here as JSON (atomically)")
-    p.add_argument("--readme", action="store_true", help="also splice the table into docs/scenes.md (section third_party)")
+    p.add_argument("--readme", action="store_true",
+                   help="also splice the table into docs/scenes.md (section third_party)")
     p.add_argument("--out", default=str(ROOT / "out" / "third_party"),
                    help="the sweep folder (points, results.csv, summary.md, index.html; default out/third_party)")
     where = p.add_mutually_exclusive_group()
@@ -335,9 +336,9 @@ def _markdown(cmdline: str, args, rows, missing, total: str) -> str:
              f"within 1e-3 = share of pixels whose every channel differs by <= 1e-3; FLIP/rel_mse from "
              f"`metrics.compare_images`; rays: of --check-rays random rays through the scene's triangles, how many "
              f"get another triangle from ours than from Embree, and in brackets how many of those are ties: both "
-             f"triangles at the same distance (float64) up to float32 resolution of the coordinates (shared edges, coplanar "
-             f"overlapping triangles), where either answer is right; seconds are each side's render without kernel "
-             f"compilation (`ab.compare`) and, with several sweep workers on one machine, scenes rendering side by "
+             f"triangles at the same distance (float64) up to float32 resolution of the coordinates (shared edges, "
+             f"coplanar overlapping triangles), where either answer is right; seconds are each side's render without "
+             f"kernel compilation (`ab.compare`) and, with several sweep workers on one machine, scenes rendering side by "
              f"side on its cores.", "",
              "| scene | triangles | other shapes | compared as | result | within 1e-3 | mean abs | max abs | FLIP mean "
              "| rel_mse | rays: other prim (ties) | stock s | ours s | notes |",

@@ -114,7 +114,8 @@ def test_instanced_matches_a_flattened_copy_and_embree_instancing(forest):
     # The bar: the same answer as Embree on >= 99.99% of the rays (measured: 200k rays,
     # 1-2 differ, all within rounding of a shared edge).
     assert ((hit_e != hit_o) | differ).sum() <= 1e-4 * n, (
-        f"hit/miss differs from Embree on {(hit_e != hit_o).sum()} rays, another triangle on {differ.sum()}:\n" + report(
-        differ, inst_e, h.instance, prim_e, h.prim, t_e, h.t, names=("inst_embree", "inst", "prim_embree", "prim", "t_embree", "t")))
+        f"hit/miss differs from Embree on {(hit_e != hit_o).sum()} rays, another triangle on {differ.sum()}:\n"
+        + report(differ, inst_e, h.instance, prim_e, h.prim, t_e, h.t,
+                 names=("inst_embree", "inst", "prim_embree", "prim", "t_embree", "t")))
     agree = both & ~differ
     assert np.quantile(np.abs(t_e[agree] - h.t[agree]) / h.t[agree], 0.99) < 1e-4

@@ -24,8 +24,9 @@ def _ours_props(traversal: str) -> dict | None:
 
 
 @pytest.mark.parametrize("name,traversal", [("cbox", "per_ray"), ("cbox", "layer_sorted"), ("cbox", "embree"),
-                                            ("bunny_box", "per_ray"), ("bunny_box", "layer_sorted"), ("sphere_box", "per_ray"),
-                                            ("sphere_box", "auto"), ("empty_box", "layer_unsorted")])
+                                            ("bunny_box", "per_ray"), ("bunny_box", "layer_sorted"),
+                                            ("sphere_box", "per_ray"), ("sphere_box", "auto"),
+                                            ("empty_box", "layer_unsorted")])
 def test_same_seed_matches_stock(name, traversal, tmp_path, layer_path_ran):
     r = testing.assert_matches_stock(SCENES / f"{name}.xml", spp=8, res=(32, 32), traversal=traversal,
                                      diff_dir=tmp_path, ours_props=_ours_props(traversal))
@@ -73,7 +74,8 @@ def test_integrator_from_xml_and_stats():
     scene = mi.load_string("""<scene version="3.0.0">
         <integrator type="layerbvh"><integer name="max_depth" value="4"/>
             <string name="traversal" value="layer_sorted"/><integer name="treelet_height" value="3"/></integrator>
-        <sensor type="perspective"><transform name="to_world"><lookat origin="0,0,4" target="0,0,0" up="0,1,0"/></transform>
+        <sensor type="perspective">
+            <transform name="to_world"><lookat origin="0,0,4" target="0,0,0" up="0,1,0"/></transform>
             <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
             <sampler type="independent"><integer name="sample_count" value="4"/></sampler></sensor>
         <shape type="sphere" id="ball"/><shape type="rectangle" id="floor"><transform name="to_world">

@@ -55,7 +55,7 @@ def test_trace_follows_the_kernel(request, mesh_name, kind, any_hit):
         # sort key per lane, a state record per ray it carries on, the entries those still hold.
         req = rep.tally[:, 1]
         if mode == "per_ray":
-            assert req[ms.S_RES_T] == rep.rays and req[ms.S_KEY_OUT:].sum() == 0
+            assert req[ms.S_RES_T] == rep.rays and req[ms.S_KEY_OUT:ms.S_SETUP_LOAD].sum() == 0
         else:
             assert req[ms.S_KEY_OUT] == rep.ray_steps and req[ms.S_STATE_OUT] == rep.carried > 0
             assert req[ms.S_SPILL_LINK] == req[ms.S_SPILL_T] == rep.pushed
@@ -149,12 +149,17 @@ def test_two_warps_transactions_by_hand():
     # (6 L1 hits); warp 1 misses only on triangle B (2) and hits the other 17.
     lh = rep.levels_hit[:ms.S_END]
     assert lh[:, 0].sum() == 23 and lh[:, 1].sum() == 0 and lh[:, 2].sum() == 15
-    # As its rays end, each warp stores their hits by slot (t, prim, u, v: 4 lanes x 4 bytes, one
-    # sector of each array; both warps' slots share it): warp 0's four stores miss (write
-    # allocate: fetched from DRAM), warp 1's hit. The local stack's stores hit (its pops read them in).
+    # Before the kernel, the trace call reads the valid mask (8 bytes: one sector) and writes the
+    # valid rays' indices (32 bytes: one) and fills the four result arrays (one sector each): six
+    # set-up transactions, every one a miss in both levels (its stores write misses). As its rays
+    # end, each warp stores their hits by slot (t, prim, u, v: 4 lanes x 4 bytes, one sector of
+    # each array; both warps' slots share it), all in L1 since the fill. The local stack's stores
+    # hit too (its pops read them in).
+    assert (tx[ms.S_SETUP_LOAD], tx[ms.S_SETUP_STORE]) == (1, 5)
+    assert list(rep.levels_hit[[ms.S_SETUP_LOAD, ms.S_SETUP_STORE]].sum(axis=0)) == [0, 0, 6]
     results = [ms.S_RES_T, ms.S_RES_PRIM, ms.S_RES_U, ms.S_RES_V]
-    assert list(tx[results]) == [2, 2, 2, 2] and tx[ms.S_END:].sum() == 8
-    assert list(rep.levels_hit[results].sum(axis=0)) == [4, 0, 4] and rep.write_misses == (4, 4)
+    assert list(tx[results]) == [2, 2, 2, 2] and tx[ms.S_END:ms.S_SETUP_LOAD].sum() == 8
+    assert list(rep.levels_hit[results].sum(axis=0)) == [8, 0, 0] and rep.write_misses == (5, 5)
     r = L.row("hand", rep, 8)
     assert r.simd_efficiency == 1.0 and r.transactions_per_ray == 38 / 8
     assert r.dram_bytes_per_ray == 15 * 32 / 8 and r.l1_hit_rate == 23 / 38

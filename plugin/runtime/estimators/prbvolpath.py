@@ -144,7 +144,8 @@ class PRBVolPathEstimator:
         replay = differential(mode)
         homogeneous, null_scattering = media
         depth, ray, L, dL, throughput, eta = s.depth, mi.Ray3f(s.ray), s.L, s.dL, s.throughput, s.eta
-        si, needs_intersection, last_event, last_pdf = s.si, s.needs_intersection, s.last_scatter_event, s.last_scatter_pdf
+        si, needs_intersection = s.si, s.needs_intersection
+        last_event, last_pdf = s.last_scatter_event, s.last_scatter_pdf
         medium, valid_ray, specular_chain = s.medium, s.valid_ray, s.specular_chain
         hint = "camera" if tr.iterations <= 1 and not tr.megakernel else "bounce"
         active = s.active & dr.any(throughput != 0)
@@ -219,7 +220,8 @@ class PRBVolPathEstimator:
             bsdf = si.bsdf(ray)
 
             # Emitter sampling from the surface or the medium, through media and null surfaces.
-            active_e_surface = active_surface & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth) & (depth + 1 < self.vertices)
+            active_e_surface = (active_surface & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+                                & (depth + 1 < self.vertices))
             sample_emitters = mei.medium.use_emitter_sampling()
             specular_chain &= ~act_medium_scatter
             specular_chain |= act_medium_scatter & ~sample_emitters

@@ -92,7 +92,8 @@ def main(argv=None) -> int:
         def low(kind, f):
             return min(r[f] for r in runs[kind])
         row = {"scene": scene, "max_depth": runs["per_ray"][0]["max_depth"],
-               "treelets": runs["per_ray"][0]["treelets"], **{f"{k}_{f}": v for k, m in med.items() for f, v in m.items()},
+               "treelets": runs["per_ray"][0]["treelets"],
+               **{f"{k}_{f}": v for k, m in med.items() for f, v in m.items()},
                "loops": {k: sorted({r["loop"] for r in v}) for k, v in runs.items()},
                "first_over_per_ray_render": med["auto_first"]["render_s"] / med["per_ray"]["render_s"],
                "later_over_per_ray_total": med["auto_later"]["total_s"] / med["per_ray"]["total_s"],
@@ -107,7 +108,8 @@ def main(argv=None) -> int:
               f"{med['auto_first']['render_s']:.2f} s (calibration {med['auto_first']['calibration_s']:.2f} s, loop "
               f"{'/'.join(row['loops']['auto_first'])}) = {row['first_over_per_ray_render']:.3f}x | auto later run "
               f"total {med['auto_later']['total_s']:.2f} s (loop {'/'.join(row['loops']['auto_later'])}) = "
-              f"{row['later_over_per_ray_total']:.3f}x | minima over rounds: {row['first_over_per_ray_render_min']:.3f}x, "
+              f"{row['later_over_per_ray_total']:.3f}x | minima over rounds: "
+              f"{row['first_over_per_ray_render_min']:.3f}x, "
               f"{row['later_over_per_ray_total_min']:.3f}x", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps({"rows": rows, "points": points, "args": vars(args)}, indent=1))

@@ -126,7 +126,8 @@ SPHERE_MATERIALS = {
     "mirror": '<bsdf type="conductor" id="mirror">\n'
               '        <string name="material" value="Ag"/>\n    </bsdf>',
     "rough_metal": '<bsdf type="roughconductor" id="rough_metal">\n'
-                   '        <string name="material" value="Au"/>\n        <float name="alpha" value="0.15"/>\n    </bsdf>',
+                   '        <string name="material" value="Au"/>\n'
+                   '        <float name="alpha" value="0.15"/>\n    </bsdf>',
     "diffuse": '<bsdf type="diffuse" id="diffuse">\n'
                '        <rgb name="reflectance" value="0.2, 0.4, 0.8"/>\n    </bsdf>',
 }
@@ -436,7 +437,8 @@ def run(a) -> None:
         raise Refused(f"cannot make {a.triangles} triangles of {a.kind} within 5% (got {plan.triangles})")
     check_memory(plan, a.triangles)
     if plan.vertices >= 2 ** 31:  # the PLY faces store int32 vertex indices
-        raise Refused(f"{a.triangles} triangles of {a.kind} need {plan.vertices} vertices, more than int32 indices hold")
+        raise Refused(f"{a.triangles} triangles of {a.kind} need {plan.vertices} vertices, "
+                      "more than int32 indices hold")
     if a.check_only:
         return
     out = a.out

@@ -58,7 +58,8 @@ def add_parser(sub) -> None:
     s.add_argument("--out", required=True, help="sweep folder: results.csv/.json, summary.md, index.html, points/")
     where = s.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, help="worker processes of a local Dask cluster (default: cores)")
-    where.add_argument("--scheduler", help="an existing Dask scheduler: ADDRESS (tcp://host:port) or its scheduler file")
+    where.add_argument("--scheduler",
+                       help="an existing Dask scheduler: ADDRESS (tcp://host:port) or its scheduler file")
     where.add_argument("--cluster", choices=("slurm",), help="slurm: the workers as SLURM jobs (dask-jobqueue; the "
                                                             "--slurm-* options), started and ended by the sweep")
     s.add_argument("--slurm-partition", help="slurm: partition (sbatch -p; default: the cluster's default)")
@@ -85,8 +86,8 @@ def add_parser(sub) -> None:
                                        "(default auto)")
     s.add_argument("--treelet-heights", help=f"compare, bench: comma list (default "
                                              f"{layerbvh.DEFAULT_TREELET_HEIGHT}; bench 4,8,12)")
-    s.add_argument("--branchings", help=f"compare, bench, locality: children per BVH node, comma list of 2, 4, 8 (default "
-                                        f"{layerbvh.DEFAULT_BRANCHING})")
+    s.add_argument("--branchings", help="compare, bench, locality: children per BVH node, comma list of 2, 4, 8 "
+                                        f"(default {layerbvh.DEFAULT_BRANCHING})")
     s.add_argument("--configs", help="converge: comma list, one point each: stock, embree, auto, per_ray, "
                                      "layer_sorted:H, layer_unsorted:H (default stock,per_ray,layer_sorted)")
     s.add_argument("--budget", type=float, help="converge: seconds of rendering per configuration (required)")
