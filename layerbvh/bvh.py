@@ -66,8 +66,8 @@ class LayerBVH:
     Given `groups` and `instances` (layerbvh.Group, layerbvh.Instance) in place of vertices and
     faces (None), it is a two-level BVH over instanced geometry (see build_instanced)."""
 
-    def __init__(self, vertices, faces, treelet_height=DEFAULT_TREELET_HEIGHT, leaf_size=None, backend=None, batch_rays=BATCH_RAYS,
-                 tail_rays=TAIL_RAYS, auto_policy: AutoPolicy | None = None, tail_fraction: float = TAIL_FRACTION,
+    def __init__(self, vertices, faces, treelet_height=DEFAULT_TREELET_HEIGHT, leaf_size=None, backend=None,
+                 batch_rays=BATCH_RAYS, tail_rays=TAIL_RAYS, auto_policy: AutoPolicy | None = None, tail_fraction: float = TAIL_FRACTION,
                  groups: list[Group] | None = None, instances: list[Instance] | None = None,
                  branching: int = DEFAULT_BRANCHING):
         treelet_height = check_param("treelet_height", treelet_height)
@@ -98,14 +98,16 @@ class LayerBVH:
             unique = placed = len(f)
         else:
             if vertices is not None or faces is not None or groups is None or instances is None:
-                raise ValueError("pass either vertices and faces (one mesh) or groups and instances (instanced geometry)")
+                raise ValueError("pass either vertices and faces (one mesh) or groups and instances "
+                                 "(instanced geometry)")
             self.vertices = self.faces = None
             self.groups, self.instances = check_instances(groups, instances)
             unique = sum(len(g.faces) for g in self.groups)
             placed = sum(len(self.groups[i.group].faces) for i in self.instances)
             kernel_load_s = load_builder_kernels() if unique else 0.0
             t0 = time.perf_counter()
-            self.layout, self.parts = instanced_layout(self.groups, self.instances, treelet_height, leaf_size, branching)
+            self.layout, self.parts = instanced_layout(self.groups, self.instances, treelet_height, leaf_size,
+                                                       branching)
             t1 = t2 = time.perf_counter()  # builds and lays out group by group: all of it is build time
         lay = self.layout
         self.device = None if lay is None else lay.to_device(self.m)

@@ -6,7 +6,8 @@ import numpy as np
 
 from .geometry import EDGE_ERR, FAR_SCALE, FAR_UNIT, MIN_RCP_INPUT
 from .layout import (BRANCHINGS, EXIT_BIT, LEAF_BIT, LEAF_COUNT_SHIFT, LEAF_FIRST_MASK, NODE_BOX_HI, NODE_BOX_LO,
-                     FAR_COORD, NODE_LINK, PAYLOAD_MASK, POP, TRI_FLOATS, TRI_NORMAL, TRI_VERTEX, LayerLayout, node_format)
+                     FAR_COORD, NODE_LINK, PAYLOAD_MASK, POP, TRI_FLOATS, TRI_NORMAL, TRI_VERTEX, LayerLayout,
+                     node_format)
 
 # -- constants as plain ints/float32 (numba folds them; numpy uint32 would promote to float) ------
 _LEAF, _EXIT, _PAYLOAD = int(LEAF_BIT), int(EXIT_BIT), int(PAYLOAD_MASK)
@@ -29,7 +30,8 @@ F_COLS = 16
 I_COLS = 21
 
 # -- load sites (one load instruction each) ----------------------------------------------------------
-S_TRI, S_LOC_R_LINK, S_LOC_R_T, S_STACK_LINK, S_STACK_T, S_NODE_TRELET, S_TF, S_NODE, S_LOC_W_LINK, S_LOC_W_T = range(10)
+(S_TRI, S_LOC_R_LINK, S_LOC_R_T, S_STACK_LINK, S_STACK_T, S_NODE_TRELET, S_TF, S_NODE, S_LOC_W_LINK,
+ S_LOC_W_T) = range(10)
 # A wide node's push j (j = 0 on top) writes two local slot sites: j = 0 the two above (the binary
 # push's), j >= 1 a pair from S_PUSH on (link, then entry distance).
 MAX_PUSH = max(BRANCHINGS) - 1
@@ -51,7 +53,8 @@ SITE_NAMES = ("triangle", "local_read_link", "local_read_t", "stack_link", "stac
 # What each site is, for the per-kind breakdown of transactions and traffic.
 CATEGORY = {"node": (S_NODE, S_NODE_TRELET, S_TF), "triangle": (S_TRI,), "stack": (S_STACK_LINK, S_STACK_T),
             "local": (S_LOC_R_LINK, S_LOC_R_T, S_LOC_W_LINK, S_LOC_W_T) + tuple(range(S_PUSH, S_START)),
-            "results": (S_RES_T, S_RES_PRIM, S_RES_U, S_RES_V), "step out": (S_KEY_OUT, S_STATE_OUT, S_SPILL_LINK, S_SPILL_T),
+            "results": (S_RES_T, S_RES_PRIM, S_RES_U, S_RES_V),
+            "step out": (S_KEY_OUT, S_STATE_OUT, S_SPILL_LINK, S_SPILL_T),
             "set-up": (S_SETUP_LOAD, S_SETUP_STORE)}
 # ... and the start sites are "ray". The local write sites and the sites from S_END on are the
 # replay's stores (the cache model's write-allocate and write-back, cachesim.py); every other site

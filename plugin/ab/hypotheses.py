@@ -314,7 +314,8 @@ class Rejection:
     def describe(self) -> str:
         where = {"image": "image mean", "tile": f"tile {self.region}", "pixel": f"pixel {self.region}"}[self.level]
         panel = f"{self.panel} " if self.panel else ""
-        return f"{self.kind} test, {panel}{where} {self.channel}: ours {100 * self.relative:+.3g}% of stock (z {self.z:.3g})"
+        return (f"{self.kind} test, {panel}{where} {self.channel}: ours {100 * self.relative:+.3g}% of stock "
+                f"(z {self.z:.3g})")
 
 
 @dataclass
@@ -339,7 +340,8 @@ class Family:
             w, h = t.film
             for p, r, c in zip(*np.nonzero(reject)):
                 col, row = int(r % t.grid[0]), int(r // t.grid[0])
-                bounds = (col * t.tile / w, row * t.tile / h, min(1.0, (col + 1) * t.tile / w), min(1.0, (row + 1) * t.tile / h))
+                bounds = (col * t.tile / w, row * t.tile / h,
+                          min(1.0, (col + 1) * t.tile / w), min(1.0, (row + 1) * t.tile / h))
                 self.rejections.append(Rejection(
                     t.kind, t.level, self.panels[p], None if t.level == "image" else (col, row),
                     CHANNELS[c], float(t.estimate[p, r, c] / max(t.scale[p, r, c], 1e-300)), float(stat[p, r, c]),
@@ -455,7 +457,8 @@ class Family:
                 f"{', '.join(sorted({t.kind for t in self.tests}))})")
 
     def as_dict(self) -> dict:
-        return {"rejected": self.rejected, "summary": self.summary(), "mde": self.power(), "mde_text": self.mde_text(), "estimate": self.estimate(),
+        return {"rejected": self.rejected, "summary": self.summary(), "mde": self.power(), "mde_text": self.mde_text(),
+                "estimate": self.estimate(),
                 "alpha": ALPHA, "power": POWER, "margin": MARGIN, "shares": SHARES,
                 "tests": {lv: {"count": self.counts[lv], "alpha_each": self.alpha_each(lv),
                                "kinds": sorted({t.kind for t in self.tests if t.level == lv})} for lv in LEVELS},

@@ -78,7 +78,8 @@ def count_ir(ir: str) -> IRCount:
                 spans[label_id] = (open_at[label_id], i)
         work = np.array([0 if _NOT_WORK.search(line) else
                          1 + helpers.get((_CALL.search(line) or [None, None])[1], 0) for line in lines])
-        loops = [lid for lid, (a, b) in spans.items() if any(lines[j].startswith(f"l_{lid}_body:") for j in range(a, b))]
+        loops = [lid for lid, (a, b) in spans.items()
+                 if any(lines[j].startswith(f"l_{lid}_body:") for j in range(a, b))]
         if not loops:
             continue
         lid = max(loops, key=lambda x: spans[x][1] - spans[x][0])
@@ -237,8 +238,8 @@ def main(argv=None) -> int:
         for c in measure(v, f, o, d, branchings, kind, args.runs, args.height, args.leaf_size):
             k = c.branching
             rows.append(asdict(c))
-            print(f"| {kind} | {k} | {c.mrays_s:.2f} | {c.speedup_vs_first:.2f} | {c.ir['loop']} | {c.ir['always']} | {c.ir['node_branch']} "
-                  f"| {c.ir['triangle_branch']} | {c.iterations_per_ray:.1f} | {c.packet_iterations_per_ray:.2f} "
+            print(f"| {kind} | {k} | {c.mrays_s:.2f} | {c.speedup_vs_first:.2f} | {c.ir['loop']} | {c.ir['always']} "
+                  f"| {c.ir['node_branch']} | {c.ir['triangle_branch']} | {c.iterations_per_ray:.1f} | {c.packet_iterations_per_ray:.2f} "
                   f"| {c.simd_use:.2f} | {c.ns_per_packet_iteration:.0f} | {c.inner_per_ray:.1f} "
                   f"| {c.box_tests_per_ray:.1f} | {c.tris_per_ray:.1f} |", flush=True)
     if args.json:

@@ -80,8 +80,8 @@ def result_rows(mesh: str, tris: int, kind: str, configs: list[Config], n: int, 
         # round's neighbours share the machine's state of the moment
         best_of = None
         if c.mode == "auto":
-            faster = max((layout_label("per_ray", c.branching, c.height), layout_label("layer_sorted", c.branching, c.height)),
-                         key=lambda k: med[k])
+            faster = max((layout_label("per_ray", c.branching, c.height),
+                          layout_label("layer_sorted", c.branching, c.height)), key=lambda k: med[k])
             best_of = float(np.median([a / b for a, b in zip(mrays[c.label], mrays[faster])]))
         rows.append({
             "mesh": mesh, "triangles": tris, "rays": kind, "mode": c.mode, "treelet_height": c.height,
@@ -89,7 +89,8 @@ def result_rows(mesh: str, tris: int, kind: str, configs: list[Config], n: int, 
             "mrays_s": med[c.label], "runs": mrays[c.label], "build_s": c.build_s,
             "bvh_bytes": c.bvh_bytes, "work_bytes": s.work_bytes if s else None,
             "ratio_per_ray": med[c.label] / per_ray, "ratio_embree": med[c.label] / med["embree"],
-            "ratio_per_ray_same_h": med[c.label] / med[layout_label("per_ray", c.branching, c.height)] if c.height else None,
+            "ratio_per_ray_same_h": (med[c.label] / med[layout_label("per_ray", c.branching, c.height)]
+                                     if c.height else None),
             "inner_per_ray": s.inner_nodes_per_ray if s else None,
             "leaves_per_ray": s.leaves_per_ray if s else None,
             "tris_per_ray": s.triangles_per_ray if s else None,
@@ -141,7 +142,8 @@ def print_table(rows: list[dict]) -> None:
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         build_rate = r["triangles"] / r["build_s"] / 1e6 if r["build_s"] else None
-        print(f"| {mode_label(r)} | {_fmt(r['branching'], 'd')} | {_fmt(r['treelet_height'], 'd')} | {r['mrays_s']:.2f} "
+        print(f"| {mode_label(r)} | {_fmt(r['branching'], 'd')} | {_fmt(r['treelet_height'], 'd')} "
+              f"| {r['mrays_s']:.2f} "
               f"| {min(r['runs']):.2f}–{max(r['runs']):.2f} | {r['ratio_per_ray']:.2f} | {r['ratio_embree']:.2f} "
               f"| {_fmt(r['inner_per_ray'], '.1f')} | {_fmt(r['box_tests_per_ray'], '.1f')} "
               f"| {_fmt(r['iterations_per_ray'], '.1f')} | {_fmt(r['leaves_per_ray'], '.2f')} "

@@ -49,7 +49,8 @@ def scene_params(scale: float, res: int = RES, spp: int = SPP) -> dict:
         return repr(float(x))
     return {"scale": num(scale), "floor_scale": num(10 * scale), "floor_y": num(-scale),
             "origin": ", ".join(num(c * scale) for c in (4, 3, 5)), "near_clip": num(1e-2 * scale),
-            "far_clip": num(1e4 * scale), "resx": str(res), "resy": str(res), "spp": str(spp), "max_depth": str(MAX_DEPTH)}
+            "far_clip": num(1e4 * scale), "resx": str(res), "resy": str(res), "spp": str(spp),
+            "max_depth": str(MAX_DEPTH)}
 
 
 def _control(params) -> None:
@@ -86,7 +87,8 @@ def which_matches(row: dict) -> str:
                                  row["ours_nonfinite"] == 0)
 
 
-@case("extreme_scales", "image", "a cube on a floor scaled by 1e-15 .. 1e18, ours and stock against its render at scale 1")
+@case("extreme_scales", "image",
+      "a cube on a floor scaled by 1e-15 .. 1e18, ours and stock against its render at scale 1")
 def extreme_scales(scale: float, scales=None) -> CaseResult:
     """Ours must match the referee within TOLERANCE at every CLAIMED scale measured, in
     layer_sorted with the wavefront path run; the others are recorded (which side matches). The
@@ -114,7 +116,8 @@ def extreme_scales(scale: float, scales=None) -> CaseResult:
               and abs(control_rel) > TOLERANCE and steps > 1)
     beyond = ", ".join(f"{r['scale']:g}: {r['matches']}" for r in rows if not lo <= r["scale"] <= hi) or "none measured"
     crit = (f"ours within {TOLERANCE:.0%} of the scale-1 referee from {lo:g} to {hi:g}: worst {worst['ours_rel']:+.2%} "
-            f"at {worst['scale']:g}; from 1 up and from {SAME_PATHS_BELOW:g} down, pixels within the same-seed tolerance {same_paths:.1%} >= "
+            f"at {worst['scale']:g}; from 1 up and from {SAME_PATHS_BELOW:g} down, pixels within the same-seed "
+            f"tolerance {same_paths:.1%} >= "
             f"{SAME_PATHS:.0%}; wavefront steps per query {steps:.2f} > 1; control ({CONTROL_KEY} x "
             f"{CONTROL_FACTOR:g} at {CLAIMED[1]:g}) {control_rel:+.2%} fails it; beyond (which side matches): {beyond}")
     return CaseResult("extreme_scales", "image", res * res * len(rows), None, None, nonfinite, passed, crit,
