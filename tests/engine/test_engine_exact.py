@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 
 import layerbvh
-from layerbvh.layout import EXIT_BIT, LEAF_BIT, NODE_BOX_HI, NODE_BOX_LO, NODE_FLOATS, PAYLOAD_MASK, TRI_FACE, TRI_FLOATS, leaf_range
+from layerbvh.layout import (EXIT_BIT, LEAF_BIT, NODE_BOX_HI, NODE_BOX_LO, NODE_FLOATS, PAYLOAD_MASK, TRI_FACE, TRI_FLOATS,
+                             leaf_range)
 
 
 def _box_entry(lo, hi, o, d):
@@ -51,7 +52,8 @@ def one_exit_trace(lay, o, d):
         _, lk = min(exits)
         if lk & LEAF_BIT:
             first, count = (int(x) for x in leaf_range(np.uint32(lk)))
-            ts = [(_hit_tri(tris[i, :9].reshape(3, 3).astype(np.float64), o, d), i) for i in range(first, first + count)]
+            ts = [(_hit_tri(tris[i, :9].reshape(3, 3).astype(np.float64), o, d), i)
+                  for i in range(first, first + count)]
             ts = [(t, tris[i, TRI_FACE:TRI_FACE + 1].view(np.uint32)[0]) for t, i in ts if t is not None]
             return min(ts) if ts else None
         node = int(lay.treelet_first[lk & PAYLOAD_MASK])
@@ -81,7 +83,8 @@ def test_one_exit_rule_is_wrong_often_on_a_real_mesh(bunny):
     0.5 ulp)."""
     v, f = bunny
     rng = np.random.default_rng(5)
-    bvh = layerbvh.build(v, f, branching=2, treelet_height=2, tail_rays=0, tail_fraction=0.0)  # the steps, no per-ray tail
+    # the steps, no per-ray tail
+    bvh = layerbvh.build(v, f, branching=2, treelet_height=2, tail_rays=0, tail_fraction=0.0)
     lo, hi = v.min(0), v.max(0)
     o = (lo + (hi - lo) * rng.random((60, 3))).astype(np.float32)
     d = rng.normal(size=(60, 3)).astype(np.float32)

@@ -34,14 +34,16 @@ stock = np.array(mi.render(scene, spp=4, seed=2))
 for name, ours, t in [("stokes", "layerbvh", "per_ray"), ("prb", "layerbvh_prb", "layer_sorted")]:
     props = {{"traversal": t, "treelet_height": 2}}
     if name == "stokes":
-        ref, img = stock, np.array(mi.render(scene, integrator=mi.load_dict(ps.integrator({{"type": ours, **ps.props, **props}})), spp=4, seed=2))
+        integ = mi.load_dict(ps.integrator({{"type": ours, **ps.props, **props}}))
+        ref, img = stock, np.array(mi.render(scene, integrator=integ, spp=4, seed=2))
     else:
         depth = {{"max_depth": 6}}
         ref = np.array(mi.render(scene, integrator=mi.load_dict({{"type": name, **depth}}), spp=4, seed=2))
         img = np.array(mi.render(scene, integrator=mi.load_dict({{"type": ours, **depth, **props}}), spp=4, seed=2))
     judged = (metrics.stokes_panels(ref), metrics.stokes_panels(img)) if name == "stokes" else (ref, img)
     out(case=name, traversal=t, channels=int(img.shape[-1]), passed=bool(metrics.same_seed_verdict(*judged)["passed"]),
-        max_diff=float(np.abs(img - ref).max()), stokes_max=[float(np.abs(ref[..., c]).max()) for c in range(ref.shape[-1])])
+        max_diff=float(np.abs(img - ref).max()),
+        stokes_max=[float(np.abs(ref[..., c]).max()) for c in range(ref.shape[-1])])
 # compare() as `layerbvh compare` runs it: the five RGB panels judged, and the independent-seed step
 # (which a same-seed pass skips) run on its own through the stokes wrapper on both sides.
 from layerbvh_mitsuba.ab.compare import CompareSettings, compare
@@ -78,8 +80,8 @@ mi.set_variant("llvm_ad_mono_polarized")
 media = mi.load_file({str(SCENES / "media" / "test_homo_area_light_volpath.xml")!r}, res=16)
 ref = np.array(mi.render(media, integrator=mi.load_dict({{"type": "volpath", "max_depth": 6}}), spp=4, seed=2))
 img = np.array(mi.render(media, integrator=mi.load_dict({{"type": "layerbvh_volpath", "max_depth": 6}}), spp=4, seed=2))
-out(case="volpath", traversal="auto", channels=int(img.shape[-1]), passed=bool(metrics.same_seed_verdict(ref, img)["passed"]),
-    max_diff=float(np.abs(img - ref).max()), stokes_max=[])
+out(case="volpath", traversal="auto", channels=int(img.shape[-1]),
+    passed=bool(metrics.same_seed_verdict(ref, img)["passed"]), max_diff=float(np.abs(img - ref).max()), stokes_max=[])
 """
 
 

@@ -30,7 +30,8 @@ def test_compare_writes_every_file(tmp_path, capsys):
     assert report_schema.validate(rep) == []  # (every documented field, of its type: docs' report.json page)
     assert rep["spp"] == 4 and rep["resolution"] == [24, 16] and rep["seed"] == 3
     assert rep["scene"].endswith("sphere_box.xml")
-    for k in ("rmse", "rel_mse", "flip_mean", "delta_e2000_mean", "delta_e2000_p95", "max_abs", "frac_pixels_over_1e-3"):
+    for k in ("rmse", "rel_mse", "flip_mean", "delta_e2000_mean", "delta_e2000_p95", "max_abs",
+              "frac_pixels_over_1e-3"):
         assert k in rep["metrics"]
     assert rep["metrics"]["frac_pixels_over_1e-3"] <= 0.01, "same seed: ours matches stock"
     assert rep["stock"]["render_s"] > 0 and rep["ours"]["render_s"] > 0 and "build_s" in rep["ours"]
@@ -111,7 +112,8 @@ def test_legal_scene_numbers_and_seeds_a_sampler_cannot_take_are_one_line(tmp_pa
     # every CLI number's range, one line each.
     for cmd, scene, extra, says in (
             ("render", zero_spp, [], "sample_count 0"), ("compare", zero_spp, [], "sample_count 0"),
-            ("render", zero_film, [], "its film is 0x0 pixels"), ("compare", zero_film, ["--spp", "2"], "its film is 0x0"),
+            ("render", zero_film, [], "its film is 0x0 pixels"),
+            ("compare", zero_film, ["--spp", "2"], "its film is 0x0"),
             ("render", crop0, [], "its film is 0x4 pixels"),
             ("compare", ptracer0, [], "samples_per_pass 0; it must be >= 1"),  # (stock dies of SIGFPE)
             ("render", rr0, [], '"rr_depth" must be set to a value greater than zero'),
@@ -217,8 +219,8 @@ def test_a_wrapped_scene_we_do_not_mirror_is_named_as_what_it_is(tmp_path, capsy
         scene.write_text(f"""<scene version="3.0.0">
         <integrator type="moment"><integrator type="{integrator}"><integer name="max_depth" value="3"/></integrator>
         </integrator>
-        <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/>
-        </film></sensor><emitter type="constant"/>
+        <sensor type="perspective"><film type="hdrfilm">
+            <integer name="width" value="8"/><integer name="height" value="8"/></film></sensor><emitter type="constant"/>
         <shape type="rectangle"><transform name="to_world"><translate z="3"/></transform></shape></scene>""")
         return scene
     scene = fog("prb")

@@ -182,7 +182,8 @@ def test_the_replays_stores_are_the_cache_models_write_misses(bunny):
     for mode in ("per_ray", "layer_sorted"):
         rep = L.replay(bvh.layout, o, d, tmax, mode, False, 8, small, bvh.tail_rays, bvh.tail_fraction)
         missed = rep.levels_hit[stores, 1:].sum(axis=0)  # store transactions served by L2, DRAM
-        assert rep.write_misses == (int(missed.sum()), int(missed[1:].sum())) and missed.sum() > 0, (mode, rep.write_misses)
+        assert rep.write_misses == (int(missed.sum()), int(missed[1:].sum())), (mode, rep.write_misses)
+        assert missed.sum() > 0, mode
         assert L.row("incoherent", rep, 8).l1_write_misses_per_ray == missed.sum() / len(o)
 
 
@@ -293,8 +294,9 @@ def test_height_table_sets_sorted_against_per_ray_per_height():
     rows = []
     for h, sorted_total, steps in ((8, 120.0, 5.0), (12, 82.0, 3.0)):
         for k in (2, 4):  # the binary rows must not leak into the default tree's table
-            rows += [dataclasses.replace(base, kind="shadow", mode="per_ray", preset="gtx965m", warp=32, treelet_height=h,
-                                         branching=k, dram_bytes_per_ray=100.0, total_dram_bytes_per_ray=100.0),
+            rows += [dataclasses.replace(base, kind="shadow", mode="per_ray", preset="gtx965m", warp=32,
+                                         treelet_height=h, branching=k, dram_bytes_per_ray=100.0,
+                                         total_dram_bytes_per_ray=100.0),
                      dataclasses.replace(base, kind="shadow", mode="layer_sorted", preset="gtx965m", warp=32,
                                          treelet_height=h, branching=k, total_dram_bytes_per_ray=sorted_total * k / 4,
                                          steps_per_ray=steps)]
@@ -320,11 +322,13 @@ def test_a_verdict_says_what_its_model_was_checked_against(tmp_path):
         {"mesh": "b.ply", "triangles": 20, "verdicts": [v("D1", 32), v("LL", 32), v("D1", 8, verdict=False)]}))
     text = mc.note("cpu", tmp_path)
     assert "a.ply (10 triangles), b.ply (20 triangles)" in text, text
-    assert "DISAGREES at D1 8 KiB, 1 of 2 meshes agreeing" in text and "agrees at D1 32 KiB, LL beside D1 32" in text, text
+    assert "DISAGREES at D1 8 KiB, 1 of 2 meshes agreeing" in text, text
+    assert "agrees at D1 32 KiB, LL beside D1 32" in text, text
     assert "reads only" in text
     # With write verdicts (the model's stores), each is named by its kind of miss.
     (tmp_path / "cachegrind_c.json").write_text(json.dumps(
-        {"mesh": "c.ply", "triangles": 30, "verdicts": [v("D1", 32), {**v("D1", 32, ratio=False), "misses": "writes"}]}))
+        {"mesh": "c.ply", "triangles": 30,
+         "verdicts": [v("D1", 32), {**v("D1", 32, ratio=False), "misses": "writes"}]}))
     text = mc.note("cpu", tmp_path)
     assert "reads and writes:" in text and "D1 32 KiB (writes), 0 of 1 meshes agreeing" in text, text
     (tmp_path / "cachegrind_c.json").unlink()

@@ -22,8 +22,8 @@ def short_name(name: str) -> str:
 COMMON = ("scene", "config", "spp", "resolution", "status", "error", "triangles", "host", "wall_s", "peak_rss_mib",
           "ran", "started", "key", "dir", "report")
 FIGURES = {
-    "compare": ("verdict", "mde_image", "within_1e-3", "rmse", "rel_mse", "flip_mean", "delta_e2000_mean", "delta_e2000_p95",
-                "max_abs", "mean_abs", "stock_s", "control_s", "ours_s", "ours_over_stock", "traversal_s", "loop_s",
+    "compare": ("verdict", "mde_image", "within_1e-3", "rmse", "rel_mse", "flip_mean", "delta_e2000_mean",
+                "delta_e2000_p95", "max_abs", "mean_abs", "stock_s", "control_s", "ours_s", "ours_over_stock", "traversal_s", "loop_s",
                 "build_s", "compile_s", "calibration_s"),
     "converge": ("spp_reached", "seconds", "rel_mse", "flip", "delta_e2000", "slope_rel_mse_vs_spp",
                  "slope_rel_mse_vs_seconds", "rel_mse_at_equal_time", "error_vs_base", "seconds_to_equal_error",
@@ -38,7 +38,8 @@ FIGURES = {
 }
 # What summary.md and index.html show (results.csv/.json have every column).
 SHOWN = {
-    "compare": ("verdict", "mde_image", "within_1e-3", "rel_mse", "flip_mean", "stock_s", "ours_s", "ours_over_stock", "build_s"),
+    "compare": ("verdict", "mde_image", "within_1e-3", "rel_mse", "flip_mean", "stock_s", "ours_s", "ours_over_stock",
+                "build_s"),
     "converge": ("spp_reached", "seconds", "rel_mse", "slope_rel_mse_vs_spp", "rel_mse_at_equal_time", "error_vs_base",
                  "time_vs_base", "build_s"),
     "bench": ("rays", "ray_count", "embree_mrays_s", "per_ray_mrays_s", "per_ray_h", "sorted_mrays_s", "sorted_h",
@@ -156,7 +157,8 @@ def merge_locality(out: Path, points, results, command: str) -> None:
         return
     scene = (lambda p: short_name(p.name))
     merged = {"command": command,
-              "results": [{**row, "scene": scene(p), "triangles": d["triangles"]} for p, d in docs for row in d["results"]],
+              "results": [{**row, "scene": scene(p), "triangles": d["triangles"]}
+                          for p, d in docs for row in d["results"]],
               "checks": [{**c, "scene": scene(p)} for p, d in docs for c in d["checks"]],
               "verdict": [f"{scene(p)}: {v}" for p, d in docs for v in d["verdict"]],
               "presets": {k: v for _, d in docs for k, v in d["presets"].items()},
