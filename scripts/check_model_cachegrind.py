@@ -1,6 +1,6 @@
-"""Check the locality model against valgrind's cache simulator: first-level and last-level read
-misses per ray of the real LLVM kernels, beside the model's replay of the same rays on the same
-cache geometry.
+"""Check the locality model against valgrind's cache simulator: first-level and last-level read and
+write misses per ray of the real LLVM kernels, beside the model's replay of the same rays on the
+same cache geometry.
 
     .venv/bin/python scripts/check_model_cachegrind.py --mesh scenes/meshes/bunny.ply --rays 20000 \\
         [--d1 32 --d1 8] [--ll 1024] [--modes per_ray,layer_sorted,layer_unsorted] --json OUT
@@ -21,13 +21,13 @@ How (issue 41):
   (`--instr=on`), zeroes the counters just before each mode's trace call (`-z`) and dumps them
   just after (`-d`). Start-up, imports, compiling and loading are never counted or simulated.
 - Per D1 size, one child traces the first N rays in each mode, one the first 2N; the difference
-  of their regions' read misses, over N, is what a ray costs (the constant per-call work, Python
-  tracing the kernels and the launches, cancels). The model replays the same N and 2N rays on a
+  of their regions' read and write misses, over N, is what a ray costs (the constant per-call
+  work, Python tracing the kernels and the launches, cancels). The model replays the same N and 2N rays on a
   preset of the same geometry (one core, the child's SIMD width, Dr.Jit's packet schedule), and
   the same difference is taken.
 What each side leaves out is printed with the table (BLIND_SPOTS).
 Exit status: 0 when the model's sorted / per_ray ratio and verdict agree with valgrind's at every D1
-size and level, 3 when one does not (the JSON is written all the same), 1 on a measurement that
+size, level and kind of miss (reads, writes), 3 when one does not (the JSON is written all the same), 1 on a measurement that
 stayed disturbed, 2 without valgrind.
 """
 from __future__ import annotations
