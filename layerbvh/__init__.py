@@ -7,7 +7,8 @@ from .collector import collector_held
 from .bvh import BATCH_RAYS, TRACE_MODES, Hits, LayerBVH, Occlusion, build, build_instanced
 from .instances import Group, Instance
 from .layout import BRANCHINGS, LayerLayout, check_layout
-from .locality import LocalityRow, LocalitySettings, RaySet, at_headline, headline_config, measure, preset_verdict, replay
+from .locality import LocalityRow, LocalitySettings, RaySet, measure, replay
+from .locality_verdict import at_headline, headline_config, preset_verdict
 from .memmodel import PRESETS, CacheLevel, Preset, preset
 from . import meshes  # noqa: F401  (the engine's test and benchmark inputs, numpy only)
 from .sah import MAX_DEPTH

@@ -14,7 +14,7 @@ from .bvh import build
 from .inputs import DEFAULT_BRANCHING, DEFAULT_TREELET_HEIGHT
 from .cachesim import C_WRITE_MISSES
 from .layout import LayerLayout, node_format, treelet_levels
-from .locality_verdict import _groups, _ratio, at_headline, headline_config, preset_verdict, verdict  # noqa: F401
+from .locality_verdict import preset_verdict, verdict
 from .memmodel import Caches, Preset, preset as named_preset, with_segment
 from .state import COMPACT_RECORD_WORDS, MISS, StateRecords
 from .steptraffic import limits, result_traffic, sort_traffic
@@ -25,6 +25,9 @@ from .wavefront import MODES, TAIL_FRACTION, TAIL_RAYS, stack_rows, takes_tail
 RAY_RECORD_BYTES = 32       # state.RayRecords: one 32-byte record per ray (the layer modes)
 PER_RAY_LOADS = 7           # per_ray reads o, d (six arrays) and tmax by slot: 4 bytes each
 REGION_ALIGN = 4096
+# The results (state.Results: t, prim, u, v by slot), each an array of its own: store site, region.
+RESULT_REGIONS = ((ms.S_RES_T, "results_t"), (ms.S_RES_PRIM, "results_prim"), (ms.S_RES_U, "results_u"),
+                  (ms.S_RES_V, "results_v"))
 
 
 @dataclass
@@ -106,7 +109,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     sizes = {"nodes": lay.nodes.nbytes, "tris": lay.tris.nbytes, "treelet_first": lay.treelet_first.nbytes,
              "node_treelet": lay.node_treelet.nbytes, "stack_link": n_all * cap_g * 4, "stack_t": n_all * cap_g * 4,
              "local_link": local_words * 4, "local_t": local_words * 4,
-             **{f"results_{k}": n_all * 4 for k in "t prim u v".split()}, "valid": n_all, "idx": n_all * 4}
+             **{region: n_all * 4 for _, region in RESULT_REGIONS}, "valid": n_all, "idx": n_all * 4}
     # The state record's format, as wavefront.trace picks it (the replay flattens instances).
     record_bytes = 4 * StateRecords.words(False, cap_g, n_all)
     compact = record_bytes == 4 * COMPACT_RECORD_WORDS
@@ -142,7 +145,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
             site_base[site], site_bytes[site], site_local[site] = base[region], 4, True
     for k, (region, nbytes, _) in enumerate(start):
         site_base[ms.S_START + k], site_bytes[ms.S_START + k] = base[region], nbytes
-    outputs = zip((ms.S_RES_T, ms.S_RES_PRIM, ms.S_RES_U, ms.S_RES_V), ("results_t", "results_prim", "results_u", "results_v"))
+    outputs = RESULT_REGIONS
     if layer:
         outputs = [*outputs, (ms.S_KEY_OUT, "keys"), (ms.S_SPILL_LINK, "stack_link"), (ms.S_SPILL_T, "stack_t")]
     for site, region in outputs:
@@ -180,7 +183,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     if layer:
         passes += [(f"ray_{k}", 4 * n_all, False) for k in range(6)]
         passes += [("ray_records", RAY_RECORD_BYTES * n_all, True), ("state_records", record_bytes * n, True)]
-    passes += [(f"results_{k}", 4 * n_all, True) for k in ("t", "prim", "u", "v")]
+    passes += [(region, 4 * n_all, True) for _, region in RESULT_REGIONS]
     for region, nbytes, write in passes if n else ():
         ms_store.setup_pass(ms.S_SETUP_STORE if write else ms.S_SETUP_LOAD, base[region], nbytes, write,
                             preset.segment_bytes, 0, tags, stamps, dirty, params, counts, clock, tally, levels_hit)
@@ -293,7 +296,7 @@ class LocalityRow:
     sampled_from: int | None = None     # rays the kind had before sampling (None: not sampled)
     seconds: float = 0.0
     trace_exact: bool | None = None     # the trace matched the kernel on every ray (None: not checked)
-    l1_write_misses_per_ray: float = 0.0  # the kernels' stores (local entry stack) that missed L1
+    l1_write_misses_per_ray: float = 0.0  # the replay's stores (memsites.STORE_SITES) that missed L1
     write_back_bytes_per_ray: float = 0.0  # dirty lines written back into DRAM (the stores' bytes: counted in the
     #                                        between-step and result bytes, so not again in total_dram_bytes_per_ray)
     preset_params: dict = field(default_factory=dict)

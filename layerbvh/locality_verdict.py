@@ -25,8 +25,8 @@ def verdict(rows: list) -> list[str]:
             f"{kind}, {pre}, W={warp}, H={h}, K={k}: sorted steps issue {_ratio(s.node_transactions_per_ray, p.node_transactions_per_ray):.2f}x "
             f"per_ray's node transactions (SIMD efficiency {s.simd_efficiency:.2f} vs {p.simd_efficiency:.2f}) and read "
             f"{nt:.2f}x its node and triangle bytes from DRAM; all kernel reads {_ratio(s.dram_bytes_per_ray, p.dram_bytes_per_ray):.2f}x, "
-            f"with the {s.sort_bytes_per_ray:.0f} B/ray moved between steps, "
-            f"the hits written and the stores' write-backs {_ratio(s.total_dram_bytes_per_ray, p.total_dram_bytes_per_ray):.2f}x: sorting "
+            f"with the {s.sort_bytes_per_ray:.0f} B/ray moved between steps "
+            f"and the hits written {_ratio(s.total_dram_bytes_per_ray, p.total_dram_bytes_per_ray):.2f}x: sorting "
             + ("wins on memory traffic" if s.total_dram_bytes_per_ray < p.total_dram_bytes_per_ray
                else "does not pay for itself in memory traffic")
             + (f" (per ray and step it moves {s.sort_bytes_per_ray_step:.0f} B; break-even "

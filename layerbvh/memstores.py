@@ -1,12 +1,12 @@
-"""The locality replay's stores as a lane ends: the hit it writes to the results, and in a wavefront step its sort
-key, its state record and the entries it still holds (the kernels' outputs, fed to the cache model as stores)."""
+"""The locality replay's stores: as a lane ends, the hit it writes to the results, and in a wavefront step its sort
+key, its state record and the entries it still holds; and the trace call's passes before its first kernel."""
 from __future__ import annotations
 
 import numba
 
 from . import cachesim, memsites, numba_cache
 from .cachesim import cache_access, coalesce
-from .memsites import (I_DONE, I_HITS, I_NL, I_SP, S_END, S_KEY_OUT, S_RES_T, S_RES_V, S_SPILL_LINK, S_SPILL_T,
+from .memsites import (I_DONE, I_HITS, I_NL, I_SP, NO_READ, S_END, S_KEY_OUT, S_RES_T, S_RES_V, S_SPILL_LINK, S_SPILL_T,
                        S_STATE_OUT, SITES)
 
 # What the kernels do (walk.walk, wavefront._step/_tail): per_ray's kernel writes every ray's hit
@@ -21,7 +21,7 @@ from .memsites import (I_DONE, I_HITS, I_NL, I_SP, S_END, S_KEY_OUT, S_RES_T, S_
 def reset(req_j):
     """No store yet this iteration: the output sites' entries of one lane's row of requests."""
     for k in range(S_END, SITES):
-        req_j[k] = -1
+        req_j[k] = NO_READ
 
 
 @numba.njit(cache=True, inline="always")
