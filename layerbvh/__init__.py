@@ -2,7 +2,8 @@
 from .auto import AUTO, AutoPolicy, choice_key
 from .backend import (LLVM_ISAS, apply_llvm_isa_from_env, cpu_model, from_numpy, llvm_isa, llvm_vector_width,
                       set_llvm_isa, set_llvm_vector_width)
-from .inputs import DEFAULT_BRANCHING, DEFAULT_LEAF_SIZE, default_leaf_size, DEFAULT_TREELET_HEIGHT, PARAM_RANGES, check_mesh, check_param
+from .inputs import (DEFAULT_BRANCHING, DEFAULT_LEAF_SIZE, default_leaf_size, DEFAULT_TREELET_HEIGHT, PARAM_RANGES,
+                     check_mesh, check_param)
 from .collector import collector_held
 from .bvh import BATCH_RAYS, TRACE_MODES, Hits, LayerBVH, Occlusion, build, build_instanced
 from .instances import Group, Instance
@@ -16,13 +17,16 @@ from .state import MISS
 from .stats import BVHStats, TraceStats
 from .wavefront import MODES
 
-__all__ = ["AUTO", "AutoPolicy", "choice_key", "BATCH_RAYS", "TRACE_MODES", "build", "build_instanced", "Group", "Instance", "LayerBVH", "Hits", "Occlusion", "BVHStats", "TraceStats",
+__all__ = ["AUTO", "AutoPolicy", "choice_key", "BATCH_RAYS", "TRACE_MODES", "build", "build_instanced", "Group",
+           "Instance", "LayerBVH", "Hits", "Occlusion", "BVHStats", "TraceStats",
            "LayerLayout", "check_layout", "MODES", "MISS", "PARAM_RANGES", "check_mesh", "check_param",
            "DEFAULT_TREELET_HEIGHT", "DEFAULT_LEAF_SIZE", "DEFAULT_BRANCHING", "BRANCHINGS", "default_leaf_size",
-           "MAX_DEPTH", "cpu_model", "from_numpy", "llvm_vector_width", "set_llvm_vector_width", "LLVM_ISAS", "llvm_isa",
+           "MAX_DEPTH", "cpu_model", "from_numpy", "llvm_vector_width", "set_llvm_vector_width", "LLVM_ISAS",
+           "llvm_isa",
            "set_llvm_isa", "collector_held",
            # the locality model
-           "LocalityRow", "LocalitySettings", "RaySet", "at_headline", "headline_config", "measure", "preset_verdict", "replay",
+           "LocalityRow", "LocalitySettings", "RaySet", "at_headline", "headline_config", "measure", "preset_verdict",
+           "replay",
            "PRESETS", "CacheLevel", "Preset", "preset"]
 __version__ = "0.1.0"
 

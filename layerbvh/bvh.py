@@ -67,9 +67,9 @@ class LayerBVH:
     faces (None), it is a two-level BVH over instanced geometry (see build_instanced)."""
 
     def __init__(self, vertices, faces, treelet_height=DEFAULT_TREELET_HEIGHT, leaf_size=None, backend=None,
-                 batch_rays=BATCH_RAYS, tail_rays=TAIL_RAYS, auto_policy: AutoPolicy | None = None, tail_fraction: float = TAIL_FRACTION,
-                 groups: list[Group] | None = None, instances: list[Instance] | None = None,
-                 branching: int = DEFAULT_BRANCHING):
+                 batch_rays=BATCH_RAYS, tail_rays=TAIL_RAYS, auto_policy: AutoPolicy | None = None,
+                 tail_fraction: float = TAIL_FRACTION, groups: list[Group] | None = None,
+                 instances: list[Instance] | None = None, branching: int = DEFAULT_BRANCHING):
         treelet_height = check_param("treelet_height", treelet_height)
         self.branching = branching = check_param("branching", branching)
         self.batch_rays = check_param("batch_rays", batch_rays)

@@ -49,7 +49,7 @@ class ReplayResult:
     lane_iterations: int
     kernels: int                    # kernel launches (wavefront steps, the tail)
     sort_bytes: int                 # bytes moved between steps (see sort_traffic)
-    ray_steps: int                  # rays summed over the wavefront steps (not the tail): what sort_bytes is spread over
+    ray_steps: int                  # rays summed over the steps (not the tail): what sort_bytes is spread over
     pushed: int                     # entries the rays that went on pushed in the steps (written back)
     seconds: float
     carried: int = 0                # rays summed over the wavefront steps they went on from (a state record each)
@@ -96,7 +96,8 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     layer = mode != "per_ray"
     # Entry stacks as wavefront.trace sizes them: a node pushes at most branching - 1 entries.
     cap_g = stack_rows(lay)
-    cap_local = max(1, (lay.branching - 1) * min(treelet_levels(lay.height, lay.branching), lay.depth)) if layer else cap_g
+    levels = min(treelet_levels(lay.height, lay.branching), lay.depth)
+    cap_local = max(1, (lay.branching - 1) * levels) if layer else cap_g
     cap_max = max(cap_local, cap_g)
     lanes_held = ms.local_stack_rows(preset.units, preset.resident_warps, warp)
     loc_link = np.zeros((lanes_held, cap_max + 1), np.int64)
@@ -237,7 +238,8 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     # (a kind's sites are loaded together, so each counts its loads once; replay() checks they agree)
     assert all((c == cs[0]).all() for cs in per_kind.values() for c in cs), "a load kind's sites disagree"
     per_ray_loads = {kind: cs[0] for kind, cs in per_kind.items()}  # (+ a step's lookup, as the kernel counts:)
-    per_ray_loads["node_treelet"] = per_ray_loads["node_treelet"] + (loads[:, ms.S_START + 2] if layer and compact else 0)
+    lookups = loads[:, ms.S_START + 2] if layer and compact else 0
+    per_ray_loads["node_treelet"] = per_ray_loads["node_treelet"] + lookups
     return ReplayResult(mode=mode, warp=warp, preset=preset, rays=n, prim=prim, t=t, work=work,
                         loads={kind: np.where(valid, c, 0) for kind, c in per_ray_loads.items()},
                         branching=lay.branching, tally=tally,
@@ -346,12 +348,14 @@ def row(kind: str, rep: ReplayResult, treelet_height: int, sampled_from: int | N
         node_dram_bytes_per_ray=dram(ms.CATEGORY["node"]), triangle_dram_bytes_per_ray=dram(ms.CATEGORY["triangle"]),
         sort_bytes_per_ray=rep.sort_bytes / n,
         total_dram_bytes_per_ray=dram(traversal) + (rep.sort_bytes + rep.result_bytes) / n,
-        branching=rep.branching, result_bytes_per_ray=rep.result_bytes / n, steps_per_ray=float(rep.work["steps"].sum()) / n,
+        branching=rep.branching, result_bytes_per_ray=rep.result_bytes / n,
+        steps_per_ray=float(rep.work["steps"].sum()) / n,
         sort_bytes_per_ray_step=rep.sort_bytes / rep.ray_steps if rep.ray_steps else 0.0,
         pushed_per_ray_step=rep.pushed / rep.ray_steps if rep.ray_steps else 0.0,
         carried_per_ray_step=rep.carried / rep.ray_steps if rep.ray_steps else 0.0,
         sampled_from=sampled_from, seconds=rep.seconds, trace_exact=None if check is None else check.exact,
-        preset_params=rep.preset.as_dict(), l1_write_misses_per_ray=rep.write_misses[0] / n if rep.write_misses else 0.0,
+        preset_params=rep.preset.as_dict(),
+        l1_write_misses_per_ray=rep.write_misses[0] / n if rep.write_misses else 0.0,
         write_back_bytes_per_ray=rep.write_back_bytes / n)
 
 

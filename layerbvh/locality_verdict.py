@@ -21,12 +21,15 @@ def verdict(rows: list) -> list[str]:
         p, s = g["per_ray"], g["layer_sorted"]
         nt = _ratio(s.node_dram_bytes_per_ray + s.triangle_dram_bytes_per_ray,
                     p.node_dram_bytes_per_ray + p.triangle_dram_bytes_per_ray)
+        tx = _ratio(s.node_transactions_per_ray, p.node_transactions_per_ray)
+        reads = _ratio(s.dram_bytes_per_ray, p.dram_bytes_per_ray)
+        total = _ratio(s.total_dram_bytes_per_ray, p.total_dram_bytes_per_ray)
         out.append(
-            f"{kind}, {pre}, W={warp}, H={h}, K={k}: sorted steps issue {_ratio(s.node_transactions_per_ray, p.node_transactions_per_ray):.2f}x "
-            f"per_ray's node transactions (SIMD efficiency {s.simd_efficiency:.2f} vs {p.simd_efficiency:.2f}) and read "
-            f"{nt:.2f}x its node and triangle bytes from DRAM; all kernel reads {_ratio(s.dram_bytes_per_ray, p.dram_bytes_per_ray):.2f}x, "
+            f"{kind}, {pre}, W={warp}, H={h}, K={k}: sorted steps issue {tx:.2f}x "
+            f"per_ray's node transactions (SIMD efficiency {s.simd_efficiency:.2f} vs {p.simd_efficiency:.2f}) "
+            f"and read {nt:.2f}x its node and triangle bytes from DRAM; all kernel reads {reads:.2f}x, "
             f"with the {s.sort_bytes_per_ray:.0f} B/ray moved between steps "
-            f"and the hits written {_ratio(s.total_dram_bytes_per_ray, p.total_dram_bytes_per_ray):.2f}x: sorting "
+            f"and the hits written {total:.2f}x: sorting "
             + ("wins on memory traffic" if s.total_dram_bytes_per_ray < p.total_dram_bytes_per_ray
                else "does not pay for itself in memory traffic")
             + (f" (per ray and step it moves {s.sort_bytes_per_ray_step:.0f} B; break-even "
@@ -76,8 +79,8 @@ def preset_verdict(rows: list) -> dict:
             f"{pre} (W={warp}, H={h}, K={k}): sorting "
             + (f"cuts the node and triangle bytes read from DRAM on {', '.join(f'{k} ({nt[k]:.2f}x)' for k in gain)}"
                if gain else f"does not cut the node and triangle bytes read from DRAM ({span(nt)} of per_ray's)")
-            + f"; counting the ray state, entry stacks, the traffic between steps and the hits written, the sorted path moves "
-              f"{span(tot)} per_ray's DRAM bytes, so "
+            + "; counting the ray state, entry stacks, the traffic between steps and the hits written, "
+            + f"the sorted path moves {span(tot)} per_ray's DRAM bytes, so "
             + (f"it wins on memory traffic for {', '.join(wins)}." if wins else
                "it does not pay for itself in memory traffic on any kind of rays."))
     return out

@@ -109,7 +109,8 @@ def turned_slivers(cols: int = 1000, n: int = 3000, seed: int = 0):
     f = np.concatenate([np.stack([i, i + 1, cols + 1 + i], 1), np.stack([i + 1, cols + 2 + i, cols + 1 + i], 1)])
     turn, _ = np.linalg.qr(rng.normal(size=(3, 3)))
     v = (v - [cols * 1e-3 / 2, 500.0, 0.0]) @ turn.T
-    target = np.stack([rng.uniform(-0.49, 0.49, n) * cols * 1e-3, rng.uniform(-0.49, 0.49, n) * 1e3, np.zeros(n)], 1) @ turn.T
+    target = np.stack([rng.uniform(-0.49, 0.49, n) * cols * 1e-3, rng.uniform(-0.49, 0.49, n) * 1e3,
+                       np.zeros(n)], 1) @ turn.T
     o = target + turn[:, 2] * rng.uniform(1, 100, (n, 1)) * np.where(rng.random((n, 1)) < 0.5, 1.0, -1.0)
     return v.astype(np.float32), f, o.astype(np.float32), (target - o).astype(np.float32)
 
@@ -169,12 +170,9 @@ def incoherent_rays(vertices, n: int, seed: int = 0, enlarge: float = 0.05) -> t
 
 # -- loading ----------------------------------------------------------------------------------------
 
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
 _PLY_FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
 
 
@@ -294,7 +292,8 @@ def _load_ply(path, data: bytes):
 def _ply_vertices(path, cols: dict) -> np.ndarray:
     missing = [c for c in "xyz" if c not in cols]
     if missing:
-        raise ValueError(f"{path}: PLY vertex element lacks propert{'ies' if len(missing) > 1 else 'y'} {', '.join(missing)}")
+        plural = "ies" if len(missing) > 1 else "y"
+        raise ValueError(f"{path}: PLY vertex element lacks propert{plural} {', '.join(missing)}")
     return np.stack([np.asarray(cols[c], np.float64) for c in "xyz"], -1)
 
 

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 import drjit as dr
 
 from .geometry import FAR_SCALE, hit_children, hit_children_wide, hit_triangle, setup_ray, to_object_space
-from .layout import (EXIT_BIT, INSTANCE_TAG, LEAF_BIT, LEAF_FIRST_MASK, LEAVE, PAYLOAD_MASK, POP, DeviceLayout, leaf_range,
-                     node_format)
+from .layout import (EXIT_BIT, INSTANCE_TAG, LEAF_BIT, LEAF_FIRST_MASK, LEAVE, PAYLOAD_MASK, POP, DeviceLayout,
+                     leaf_range, node_format)
 from .loopstate import Held
 from .state import MISS, EntryStack, RayState
 
@@ -119,7 +119,8 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
     if dr.hint(step_treelet is None, mode="scalar"):  # a compact state record: no treelet stored
         step_treelet, n_treelet = _record_treelet(m, lay, s.link, n_treelet, count_work, bounded)
     next_treelet = m.UInt32(step_treelet)
-    base = s.slot * dr.opaque(m.UInt32, stack.rows) if stack is not None else m.UInt32(0)  # (opaque: one kernel per tree depth)
+    # (opaque: one kernel per tree depth)
+    base = s.slot * dr.opaque(m.UInt32, stack.rows) if stack is not None else m.UInt32(0)
     active = dr.full(m.Bool, True, dr.width(s.link)) if active is None else m.Bool(active)
     # The loop's state is what its body changes. @syntax makes every name the body reads or
     # writes a state variable, and Dr.Jit, finding one unchanged after tracing the body, traces
@@ -173,8 +174,8 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
         e_link, e_t = m.UInt32(loc_link[nl]), m.Float(loc_t[nl])
         from_global = m.Bool(False)
         if stack is not None:
-            from_global, sp, e_link, e_t, n_stack = _pop_global(m, stack, fixed.base, want & ~from_local, sp, e_link, e_t,
-                                                                 n_stack, count_work)
+            from_global, sp, e_link, e_t, n_stack = _pop_global(m, stack, fixed.base, want & ~from_local, sp, e_link,
+                                                                 e_t, n_stack, count_work)
         empty = want & ~from_local & ~from_global
         done |= empty
         active &= ~empty
@@ -184,8 +185,8 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
         if instanced:
             link, in_inst, ray = _leave_instance(m, want, link, in_inst, ray, fixed.world_o, fixed.world_d)
         if bounded:
-            leave, tre, n_treelet = _entry_treelet(m, lay, fixed.step_treelet, want, active, link, from_global, n_treelet,
-                                                   count_work)
+            leave, tre, n_treelet = _entry_treelet(m, lay, fixed.step_treelet, want, active, link, from_global,
+                                                   n_treelet, count_work)
             next_treelet = dr.select(leave, tre, next_treelet)
             active &= ~leave
 
@@ -193,8 +194,8 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
         entered = m.Bool(False)
         if instanced:
             entered, in_inst, ray, link, n_enter, next_treelet, active = _enter_instance(
-                m, lay, active, tri_cur, tri_end, link, in_inst, ray, fixed.world_o, fixed.world_d, n_enter, next_treelet,
-                count_work, bounded)
+                m, lay, active, tri_cur, tri_end, link, in_inst, ray, fixed.world_o, fixed.world_d, n_enter,
+                next_treelet, count_work, bounded)
 
         # -- a node: all children; on with the nearest, push the others (far to near) --
         # Binary: `push` says whether the farther child is pushed. Wide: `n_push` entries,
@@ -256,8 +257,8 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
                 n_leaf += 1
 
         if dr.hint(spill is not None, mode="scalar"):  # -- a step's end: the entries the ray holds, written back --
-            n_spill = _spill_held(m, spill, loc_link, loc_t, cap, walking & ~active & ~done, fixed.base + sp, nl, n_spill,
-                                  count_work)
+            n_spill = _spill_held(m, spill, loc_link, loc_t, cap, walking & ~active & ~done, fixed.base + sp, nl,
+                                  n_spill, count_work)
 
     ray, in_inst, hit_inst, sp, next_treelet = (Held.value(x) for x in (ray, in_inst, hit_inst, sp, next_treelet))
     n_inner, n_leaf, n_tri, n_iter, n_root, n_top, n_enter, n_stack, n_treelet, n_spill, n_hitw = (

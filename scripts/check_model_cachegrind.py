@@ -27,8 +27,8 @@ How (issue 41):
   the same difference is taken.
 What each side leaves out is printed with the table (BLIND_SPOTS).
 Exit status: 0 when the model's sorted / per_ray ratio and verdict agree with valgrind's at every D1
-size, level and kind of miss (reads, writes), 3 when one does not (the JSON is written all the same), 1 on a measurement that
-stayed disturbed, 2 without valgrind.
+size, level and kind of miss (reads, writes), 3 when one does not (the JSON is written all the same),
+1 on a measurement that stayed disturbed, 2 without valgrind.
 """
 from __future__ import annotations
 
@@ -229,7 +229,8 @@ def model_preset(d1_kib: int, ll_kib: int, lanes: int):
     return Preset(
         name=f"cachegrind-d1-{d1_kib}k", description=f"cachegrind's D1 {d1_kib} KiB, LL {ll_kib} KiB", kind="cpu",
         units=1, resident_warps=1, block_warps=max(1, DRJIT_LLVM_BLOCK_LANES // lanes), warp=lanes, segment_bytes=LINE,
-        levels=(CacheLevel("L1", d1_kib * KIB, D1_WAYS, LINE, False), CacheLevel("L2", ll_kib * KIB, LL_WAYS, LINE, True)),
+        levels=(CacheLevel("L1", d1_kib * KIB, D1_WAYS, LINE, False),
+                CacheLevel("L2", ll_kib * KIB, LL_WAYS, LINE, True)),
         flush_private_each_kernel=False, source="set to the geometry given to cachegrind (check_model_cachegrind.py)")
 
 
@@ -361,12 +362,14 @@ def section(docs: list[dict]) -> str:
         def num(x):  # (a JSON written before the model had stores has no model write misses; LL none)
             return "" if x is None else f"{x:.2f}"
         for r in doc["rows"]:
-            q = r["model_misses_per_ray"] / r["cachegrind_misses_per_ray"] if r["cachegrind_misses_per_ray"] else float("nan")
+            cg = r["cachegrind_misses_per_ray"]
+            q = r["model_misses_per_ray"] / cg if cg else float("nan")
             parts.append(f"| {r['d1_kib']} KiB | {r['level']} | {r['mode']} | {r['model_misses_per_ray']:.2f} | "
-                         f"{r['cachegrind_misses_per_ray']:.2f} | {q:.2f} | {num(r.get('model_write_misses_per_ray'))} | "
+                         f"{r['cachegrind_misses_per_ray']:.2f} | {q:.2f} "
+                         f"| {num(r.get('model_write_misses_per_ray'))} | "
                          f"{num(r['cachegrind_write_misses_per_ray'])} | {'yes' if r['hits_equal'] else 'NO'} |")
-        parts += ["", "| D1 | level | misses | sorted ÷ per_ray, model | sorted ÷ per_ray, valgrind | ratio within ±15% | "
-                  "absolute within ±30% | same verdict |", "|---|---|---|---|---|---|---|---|"]
+        parts += ["", "| D1 | level | misses | sorted ÷ per_ray, model | sorted ÷ per_ray, valgrind "
+                  "| ratio within ±15% | absolute within ±30% | same verdict |", "|---|---|---|---|---|---|---|---|"]
         for v in doc["verdicts"]:
             parts.append(f"| {v['d1_kib']} KiB | {v['level']} | {v.get('misses', 'reads')} | {v['model_ratio']:.2f} | "
                          f"{v['cachegrind_ratio']:.2f} | "
@@ -388,9 +391,10 @@ def unmodelled(rows: list[dict]) -> list[str]:
             continue
         extra = r["cachegrind_misses_per_ray"] - r["model_misses_per_ray"]
         writes = r["cachegrind_write_misses_per_ray"] - p["cachegrind_write_misses_per_ray"]
+        lines = r["model_between_steps_lines_per_ray"]
         out.append(f"- D1 {d1} KiB, {mode}: valgrind counts {extra:.1f} more read misses per ray than the model and "
-                   f"{writes:.1f} write misses per ray more than per_ray's; the model's between-step formula stands for "
-                   f"{r['model_between_steps_lines_per_ray']:.1f} lines ({64 * r['model_between_steps_lines_per_ray']:.0f} B) per ray.")
+                   f"{writes:.1f} write misses per ray more than per_ray's; the model's between-step formula stands "
+                   f"for {lines:.1f} lines ({64 * lines:.0f} B) per ray.")
     return out
 
 
@@ -414,7 +418,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.report:
         from layerbvh_mitsuba import atomic
-        atomic.splice_section(ROOT / "BENCHMARKS.md", SECTION, section([json.loads(Path(j).read_text()) for j in args.report]))
+        docs = [json.loads(Path(j).read_text()) for j in args.report]
+        atomic.splice_section(ROOT / "BENCHMARKS.md", SECTION, section(docs))
         print(f"replaced the {SECTION} section of BENCHMARKS.md")
         return 0
     if not args.mesh:
@@ -437,9 +442,11 @@ def main(argv=None) -> int:
         tmp.write_text(json.dumps(doc, indent=1))
         tmp.replace(args.json)
     for v in doc["verdicts"]:
-        print(f"D1 {v['d1_kib']} KiB {v['level']} {v.get('misses', 'reads')}: sorted / per_ray model {v['model_ratio']:.2f}, valgrind "
-              f"{v['cachegrind_ratio']:.2f}: ratio {'agrees' if v['ratio_agrees'] else 'DISAGREES'}, absolute "
-              f"{'agrees' if v['absolute_agrees'] else 'DISAGREES'}, verdict {'agrees' if v['verdict_agrees'] else 'DISAGREES'}")
+        def word(key):
+            return "agrees" if v[key] else "DISAGREES"
+        print(f"D1 {v['d1_kib']} KiB {v['level']} {v.get('misses', 'reads')}: sorted / per_ray model "
+              f"{v['model_ratio']:.2f}, valgrind {v['cachegrind_ratio']:.2f}: ratio {word('ratio_agrees')}, "
+              f"absolute {word('absolute_agrees')}, verdict {word('verdict_agrees')}")
     return disagreement(doc["verdicts"])
 
 

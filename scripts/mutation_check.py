@@ -382,7 +382,8 @@ MUTATIONS = (
     Mutation("line_over_120_columns", "a line of 130 columns in a module off the ruff backlog",
              "layerbvh/cachesim.py",
              "EMPTY_TAG = -1  # line numbers are >= 0 because addresses are\n",
-             "EMPTY_TAG = -1  # line numbers are >= 0 because addresses are" + " (and a comment that runs on)" * 3 + "\n",
+             "EMPTY_TAG = -1  # line numbers are >= 0 because addresses are"
+             + " (and a comment that runs on)" * 3 + "\n",
              ("tests/tools/test_code_layout.py::test_lines_are_at_most_120_columns",)),
     Mutation("driver_methods_copied", "each integrator class gets copies of the driver's methods instead of "
              "inheriting them",
@@ -410,7 +411,8 @@ MUTATIONS = (
              ("tests/engine/test_engine_wide.py::test_collapse_pulls_up_the_largest_children[4]",)),
     Mutation("boxes_not_widened", "child boxes are stored as built (a ray in a box's face plane misses it)",
              "layerbvh/relayout.py",
-             "    lo_out = np.nextafter(b.lo, np.float32(-np.inf))\n    hi_out = np.nextafter(b.hi, np.float32(np.inf))\n",
+             "    lo_out = np.nextafter(b.lo, np.float32(-np.inf))\n"
+             "    hi_out = np.nextafter(b.hi, np.float32(np.inf))\n",
              "    lo_out, hi_out = b.lo, b.hi\n",
              ("tests/tools/test_stability.py::test_case[axis_aligned_rays]",)),
     Mutation("collector_runs_mid_recording", "the render no longer pauses Python's garbage collector while Dr.Jit "
@@ -532,8 +534,10 @@ MUTATIONS = (
     Mutation("gradient_step_not_paired", "the gradient verdict's second step renders ours at other seeds than "
              "stock's (Welch's power, not the pairs'): at GRAD_SAMPLES a parameter 2% off passes",
              "plugin/ab/gradient.py",
-             "            side[name] = _moments([gradients(mi, sc, integ, key, spp, PAIR_SEED * MOMENT_RENDERS + r, forward)\n",
-             "            side[name] = _moments([gradients(mi, sc, integ, key, spp, (PAIR_SEED + (name == 'ours')) * MOMENT_RENDERS + r, forward)\n",
+             "            side[name] = _moments([gradients(mi, sc, integ, key, spp, "
+             "PAIR_SEED * MOMENT_RENDERS + r, forward)\n",
+             "            side[name] = _moments([gradients(mi, sc, integ, key, spp, "
+             "(PAIR_SEED + (name == 'ours')) * MOMENT_RENDERS + r, forward)\n",
              ("tests/runtime/test_prb.py::test_gradient_statistical_step_and_its_negative_control",)),
     Mutation("prbvolpath_nee_not_replayed", "prbvolpath's replay skips the emitter sample's transmittance "
              "derivatives",
@@ -544,7 +548,8 @@ MUTATIONS = (
     Mutation("differentiable_render_not_held", "a differentiable render pauses the collector only inside each "
              "`sample`, not across Mitsuba's render_forward/render_backward (Dr.Jit then aborts)",
              "plugin/runtime/registry.py",
-             '                     "render_forward": driver.render_forward_held,\n                     "render_backward": driver.render_backward_held}\n',
+             '                     "render_forward": driver.render_forward_held,\n'
+             '                     "render_backward": driver.render_backward_held}\n',
              "}\n",
              ("tests/runtime/test_held_instances.py::test_a_differentiable_render_holds_the_collector_across_forward_and_backward",
               "tests/runtime/test_prb.py::test_gradients_same_seed_as_stock[prb-cbox-layer_sorted]")),
@@ -587,7 +592,8 @@ MUTATIONS = (
     Mutation("volpathmis_forgets_nee_after_scattering", "volpathmis keeps the old p_over_f_nee after a real "
              "collision in a medium (the shared walk's strategy hook does nothing)",
              "plugin/runtime/estimators/volpathmis.py",
-             "        return Ratios(w.p_over_f, self.W.select(scattered, w.p_over_f, w.p_over_f_nee), w.last_event_was_null)",
+             "        return Ratios(w.p_over_f, self.W.select(scattered, w.p_over_f, w.p_over_f_nee), "
+             "w.last_event_was_null)",
              "        return w",
              ("tests/runtime/test_volpath.py::test_mitsuba_volpathmis_scenes_match_stock_at_the_same_seed[test_homo_spectral_sigmat]",
               "tests/runtime/test_media_reference.py::test_volpathmis_passes_mitsubas_reference_test[test_hetero_spectral_sigmat]")),
@@ -595,8 +601,10 @@ MUTATIONS = (
              "throughput by sigma_s alone (its strategy's real_collision drops the real-collision probability)",
              "plugin/runtime/estimators/volpath.py",
              "        throughput = dr.select(spectral, _scaled(w.throughput, mei.sigma_s\n"
-             "                               / dr.mean(mei.sigma_t / mei.combined_extinction, axis=0)), w.throughput)\n",
-             "        throughput = dr.select(spectral, _scaled(w.throughput, mei.sigma_s), w.throughput)\n",
+             "                               / dr.mean(mei.sigma_t / mei.combined_extinction, axis=0)), "
+             "w.throughput)\n",
+             "        throughput = dr.select(spectral, _scaled(w.throughput, mei.sigma_s), "
+             "w.throughput)\n",
              ("tests/runtime/test_media_reference.py::test_ours_passes_mitsubas_reference_test[test_hetero_sigmat]",)),
     Mutation("plugin_imports_the_engine", "the pytest plugin imports the engine (and with it Dr.Jit and numba) when "
              "pytest starts",
@@ -653,13 +661,15 @@ MUTATIONS = (
     Mutation("third_party_integrator_ignored", "compare renders the scene's own integrator whatever "
              "CompareSettings.integrator (a SCENE@INTEGRATOR row) asks for",
              "plugin/ab/compare.py",
-             "    chosen = None if s.integrator is None else _stage(STOCK, \"setup\", lambda: load_integrator(mi, s.integrator))\n",
+             "    chosen = None if s.integrator is None else "
+             "_stage(STOCK, \"setup\", lambda: load_integrator(mi, s.integrator))\n",
              "    chosen = None\n",
              ("tests/tools/test_third_party.py::test_table_has_a_verdict_per_scene_and_names_refused_plugins",)),
     Mutation("scene_sample_count_zero_rendered", "a scene whose sampler has sample_count 0 (no --spp) is rendered: "
              "the process dies of SIGFPE (issue 56)",
              "plugin/ab/render.py",
-             "    if spp < 1:\n        raise UserError(f\"the scene's sampler has sample_count {spp}; give --spp N or a sample_count >= 1\")\n",
+             "    if spp < 1:\n        raise UserError(f\"the scene's sampler has sample_count {spp}; "
+             "give --spp N or a sample_count >= 1\")\n",
              "",
              ("tests/tools/test_cli.py::test_legal_scene_numbers_and_seeds_a_sampler_cannot_take_are_one_line",)),
     Mutation("pass_seed_overflows", "pass seeds seed x 7919 + k without the modulo: a Unix time as the seed "
@@ -755,11 +765,14 @@ MUTATIONS = (
              "bias that the verdict at the media test's own settings (16 spp) must see (issue 55)",
              "plugin/runtime/estimators/volpath.py",
              "        throughput = dr.select(spectral, _scaled(w.throughput, mei.sigma_s\n"
-             "                               / dr.mean(mei.sigma_t / mei.combined_extinction, axis=0)), w.throughput)\n"
+             "                               / dr.mean(mei.sigma_t / mei.combined_extinction, axis=0)), "
+             "w.throughput)\n"
              "        throughput = dr.select(plain, _scaled(throughput, mei.sigma_s / mei.sigma_t), throughput)\n",
              "        throughput = dr.select(spectral, _scaled(w.throughput, 0.98 * mei.sigma_s\n"
-             "                               / dr.mean(mei.sigma_t / mei.combined_extinction, axis=0)), w.throughput)\n"
-             "        throughput = dr.select(plain, _scaled(throughput, 0.98 * mei.sigma_s / mei.sigma_t), throughput)\n",
+             "                               / dr.mean(mei.sigma_t / mei.combined_extinction, axis=0)), "
+             "w.throughput)\n"
+             "        throughput = dr.select(plain, _scaled(throughput, 0.98 * mei.sigma_s / mei.sigma_t), "
+             "throughput)\n",
              ("tests/runtime/test_volpath.py::test_heterogeneous_media_agree_with_stock_within_noise",)),
     Mutation("prb_replay_without_area_jacobian", "the replay leaves out the solid-angle to area Jacobian of a "
              "moving vertex: derivatives with respect to geometry are wrong (issue 55)",
@@ -895,7 +908,8 @@ def main(argv=None) -> int:
                "PYTHONDONTWRITEBYTECODE": "1", "COLUMNS": "250",  # COLUMNS: pytest's summary lines whole
                "LAYERBVH_VALGRIND_TEST": "1"}  # (the valgrind test, off in the suite's time budget)
         probe = subprocess.run([python, "-c", "import layerbvh, layerbvh_mitsuba, os; "
-                                "print(os.path.realpath(layerbvh.__file__)); print(os.path.realpath(layerbvh_mitsuba.__file__))"],
+                                "print(os.path.realpath(layerbvh.__file__)); "
+                                "print(os.path.realpath(layerbvh_mitsuba.__file__))"],
                                cwd=copy, env=env, capture_output=True, text=True)
         where = probe.stdout.split()
         if probe.returncode != 0 or len(where) != 2 or not all(w.startswith(str(copy.resolve())) for w in where):

@@ -17,13 +17,16 @@ EMBED_MAX_PIXELS = 1 << 20
 
 # Each metric: a plain name, its unit, and what it means.
 METRICS = {
-    "frac_pixels_over_1e-3": ("pixels differing by more than 1e-3", "share", "pixels where some channel of ours differs from stock by more than 1e-3 (linear radiance)"),
+    "frac_pixels_over_1e-3": ("pixels differing by more than 1e-3", "share", "pixels where some channel of ours "
+                              "differs from stock by more than 1e-3 (linear radiance)"),
     "max_abs": ("largest difference", "radiance", "the largest |ours − stock| over every pixel and channel"),
     "mean_abs": ("mean difference", "radiance", "mean |ours − stock| over pixels and channels"),
     "rmse": ("RMSE", "radiance", "root of the mean squared difference"),
     "rel_mse": ("relative MSE", "", "mean of (ours − stock)² / (stock² + 0.01): error relative to brightness"),
-    "flip_mean": ("mean ꟻLIP", "0–1", "perceptual difference of the tone-mapped images (NVIDIA ꟻLIP, LDR); 0 = identical"),
-    "delta_e2000_mean": ("mean ΔE2000", "ΔE", "mean CIEDE2000 colour difference of the tone-mapped images; below 1 is invisible"),
+    "flip_mean": ("mean ꟻLIP", "0–1",
+                  "perceptual difference of the tone-mapped images (NVIDIA ꟻLIP, LDR); 0 = identical"),
+    "delta_e2000_mean": ("mean ΔE2000", "ΔE",
+                         "mean CIEDE2000 colour difference of the tone-mapped images; below 1 is invisible"),
     "delta_e2000_p95": ("95th-percentile ΔE2000", "ΔE", "95% of pixels differ by less than this colour difference"),
     "mean_ref": ("mean stock pixel", "radiance", "the mean pixel value of stock's image, for scale"),
     "pixels": ("pixels", "", "width × height"),
@@ -70,7 +73,8 @@ def colour_bar(cmap: str, lo: str, hi: str, label: str) -> str:
     stops = ", ".join(f"rgb({', '.join(str(int(255 * c)) for c in colormaps[cmap](i / 15)[:3])}) {100 * i / 15:.0f}%"
                       for i in range(16))
     return (f'<div class="bar"><span>{html.escape(lo)}</span><div class="grad" style="background:linear-gradient('
-            f'to right, {stops})"></div><span>{html.escape(hi)}</span><div class="barlabel">{html.escape(label)}</div></div>')
+            f'to right, {stops})"></div><span>{html.escape(hi)}</span>'
+            f'<div class="barlabel">{html.escape(label)}</div></div>')
 
 
 def legend(text: str) -> str:
@@ -90,7 +94,8 @@ h1{font-size:1.4em;margin-bottom:.2em} h2{font-size:1.1em;margin-top:1.6em;borde
 #loupe{image-rendering:pixelated;border:1px solid #999;width:176px;height:176px}
 .controls button{margin:0 .3em .3em 0;padding:.3em .8em} .controls button.on{background:#246;color:#fff}
 .readout{font-family:ui-monospace,monospace;font-size:.85em;white-space:pre;min-height:4.5em}
-table{border-collapse:collapse;margin:.4em 0 1em} td,th{border:1px solid #ccc;padding:3px 9px;text-align:left;vertical-align:top}
+table{border-collapse:collapse;margin:.4em 0 1em}
+td,th{border:1px solid #ccc;padding:3px 9px;text-align:left;vertical-align:top}
 td.num{text-align:right;font-variant-numeric:tabular-nums} th{background:#f3f3f3}
 .maps{display:flex;gap:2em;flex-wrap:wrap} .maps figure{margin:0}
 .maps img{image-rendering:pixelated;border:1px solid #999}
@@ -110,16 +115,21 @@ function half(b64){  // IEEE half floats -> Float32Array
   for (let i = 0; i < n; i++){
     const h = bin.charCodeAt(2*i) | (bin.charCodeAt(2*i+1) << 8);
     const s = h & 0x8000 ? -1 : 1, e = (h >> 10) & 31, f = h & 1023;
-    out[i] = e === 0 ? s * Math.pow(2, -14) * f / 1024 : e === 31 ? (f ? NaN : s * Infinity) : s * Math.pow(2, e - 15) * (1 + f / 1024);
+    out[i] = e === 0 ? s * Math.pow(2, -14) * f / 1024
+           : e === 31 ? (f ? NaN : s * Infinity) : s * Math.pow(2, e - 15) * (1 + f / 1024);
   }
   return out;
 }
 const img = D.stock ? {stock: half(D.stock), ours: half(D.ours)} : null;
-function srgb(x){ x = Math.min(Math.max(x, 0), 1); return x <= 0.0031308 ? 12.92 * x : 1.055 * Math.pow(x, 1/2.4) - 0.055; }
+function srgb(x){
+  x = Math.min(Math.max(x, 0), 1);
+  return x <= 0.0031308 ? 12.92 * x : 1.055 * Math.pow(x, 1/2.4) - 0.055;
+}
+const modeButtons = document.querySelectorAll('.controls button[data-mode]');
 function draw(){
   status.textContent = mode === 'split' ? 'split: stock | ours' : mode;
   view.dataset.showing = mode;
-  document.querySelectorAll('.controls button[data-mode]').forEach(b => b.classList.toggle('on', b.dataset.mode === mode));
+  modeButtons.forEach(b => b.classList.toggle('on', b.dataset.mode === mode));
   if (!img){  // large image: PNGs, flip and split by clipping
     const s = document.getElementById('img_stock'), o = document.getElementById('img_ours');
     o.style.clipPath = mode === 'ours' ? 'none' : mode === 'stock' ? 'inset(0 0 0 100%)' : `inset(0 0 0 ${100*split}%)`;
@@ -128,7 +138,8 @@ function draw(){
   }
   const ctx = view.getContext('2d'), out = ctx.createImageData(W, H), k = Math.pow(2, ev), cut = Math.round(split * W);
   for (let y = 0; y < H; y++) for (let x = 0; x < W; x++){
-    const which = mode === 'split' ? (x < cut ? 'stock' : 'ours') : mode, src = img[which], i = 3 * (y * W + x), o = 4 * (y * W + x);
+    const which = mode === 'split' ? (x < cut ? 'stock' : 'ours') : mode, src = img[which];
+    const i = 3 * (y * W + x), o = 4 * (y * W + x);
     for (let c = 0; c < 3; c++) out.data[o + c] = Math.round(255 * srgb(src[i + c] * k));
     out.data[o + 3] = 255;
   }
@@ -139,12 +150,18 @@ function draw(){
 function setMode(m){ mode = m; draw(); }
 window.layerbvhSetMode = setMode;
 function flip(){ setMode(mode === 'stock' ? 'ours' : 'stock'); }
-document.querySelectorAll('.controls button[data-mode]').forEach(b => b.addEventListener('click', () => setMode(b.dataset.mode)));
+modeButtons.forEach(b => b.addEventListener('click', () => setMode(b.dataset.mode)));
 const target = img ? view : document.getElementById('viewimgs');
 target.addEventListener('click', flip);
 document.addEventListener('keydown', e => { if (e.key === 'f' || e.key === ' '){ e.preventDefault(); flip(); } });
-const sl = document.getElementById('split'); if (sl) sl.addEventListener('input', () => { split = sl.value / 100; if (mode !== 'split') mode = 'split'; draw(); });
-const ex = document.getElementById('ev'); if (ex) ex.addEventListener('input', () => { ev = +ex.value; document.getElementById('evval').textContent = (ev >= 0 ? '+' : '') + ev.toFixed(1) + ' EV'; draw(); });
+const sl = document.getElementById('split');
+if (sl) sl.addEventListener('input', () => { split = sl.value / 100; if (mode !== 'split') mode = 'split'; draw(); });
+const ex = document.getElementById('ev');
+if (ex) ex.addEventListener('input', () => {
+  ev = +ex.value;
+  document.getElementById('evval').textContent = (ev >= 0 ? '+' : '') + ev.toFixed(1) + ' EV';
+  draw();
+});
 function fmt(v){ return v.toPrecision(4).padStart(10); }
 function loupe(x, y){
   const lc = document.getElementById('loupe'); if (!lc || !img) return;
@@ -155,11 +172,15 @@ function loupe(x, y){
   c.strokeStyle = '#f0f'; c.strokeRect(r * lc.width / n, r * lc.height / n, lc.width / n, lc.height / n);
 }
 if (img) view.addEventListener('mousemove', e => {
-  const b = view.getBoundingClientRect(), x = Math.floor((e.clientX - b.left) / b.width * W), y = Math.floor((e.clientY - b.top) / b.height * H);
+  const b = view.getBoundingClientRect();
+  const x = Math.floor((e.clientX - b.left) / b.width * W), y = Math.floor((e.clientY - b.top) / b.height * H);
   if (x < 0 || y < 0 || x >= W || y >= H) return;
   last = {x, y}; const i = 3 * (y * W + x), s = img.stock, o = img.ours;
   document.getElementById('readout').textContent =
-    `pixel (${x}, ${y})      R          G          B\nstock   ${fmt(s[i])} ${fmt(s[i+1])} ${fmt(s[i+2])}\nours    ${fmt(o[i])} ${fmt(o[i+1])} ${fmt(o[i+2])}\n|diff|  ${fmt(Math.abs(o[i]-s[i]))} ${fmt(Math.abs(o[i+1]-s[i+1]))} ${fmt(Math.abs(o[i+2]-s[i+2]))}`;
+    `pixel (${x}, ${y})      R          G          B\n`
+    + `stock   ${fmt(s[i])} ${fmt(s[i+1])} ${fmt(s[i+2])}\n`
+    + `ours    ${fmt(o[i])} ${fmt(o[i+1])} ${fmt(o[i+2])}\n`
+    + `|diff|  ${fmt(Math.abs(o[i]-s[i]))} ${fmt(Math.abs(o[i+1]-s[i+1]))} ${fmt(Math.abs(o[i+2]-s[i+2]))}`;
   loupe(x, y);
 });
 draw();
@@ -210,16 +231,17 @@ def _timing_table(rep: dict) -> str:
 
 
 def _features_table(features: dict) -> str:
-    rows = [(f"<td>{html.escape(f['feature'])}</td>", '<td>on</td>', f'<td class="small">{html.escape(f["reason"])}</td>')
-            for f in features.get("active_detail", [])]
-    rows += [(f"<td>{html.escape(f['feature'])}</td>", '<td>left out</td>', f'<td class="small">{html.escape(f["reason"])}</td>')
-             for f in features.get("left_out", [])]
+    def row(f, state):
+        return f"<td>{html.escape(f['feature'])}</td>", state, f'<td class="small">{html.escape(f["reason"])}</td>'
+    rows = [row(f, "<td>on</td>") for f in features.get("active_detail", [])]
+    rows += [row(f, "<td>left out</td>") for f in features.get("left_out", [])]
     return "<table><tr><th>feature</th><th>state</th><th>why</th></tr>\n" + _rows(rows) + "</table>\n" if rows else ""
 
 
 STATS = (("rays", "rays traced", "all queries of the counted pass"),
          ("inner_nodes", "inner nodes visited", "node tests (each tests both children)"),
-         ("triangles", "triangles tested", ""), ("wavefront_steps", "wavefront steps", "sorted/unsorted steps (layer modes)"),
+         ("triangles", "triangles tested", ""),
+         ("wavefront_steps", "wavefront steps", "sorted/unsorted steps (layer modes)"),
          ("queries", "queries", "closest-hit and any-hit calls"), ("loop", "bounce loop", "megakernel or wavefront"),
          ("peak_work_bytes", "peak work memory (bytes)", "entry stacks, ray state, outputs of one batch"))
 

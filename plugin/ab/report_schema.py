@@ -30,8 +30,9 @@ VERDICT = _obj("the verdict (plugin/ab/verdict.py; docs/verdict.md says what eac
                                                        "image mean (and of a tile's) caught with 95% probability; "
                                                        "null where no test of equal means ran"},
     "criterion": {"type": "string", "description": "the two steps' rule, in words, with its thresholds"},
-    "same_seed": _obj("step 1, the same-seed criterion", {"passed": {"type": "boolean"},
-                                                           "frac_within": {**NUM, "description": "share of pixels within the tolerance"}},
+    "same_seed": _obj("step 1, the same-seed criterion",
+                      {"passed": {"type": "boolean"},
+                       "frac_within": {**NUM, "description": "share of pixels within the tolerance"}},
                       ("passed", "frac_within")),
     "hypotheses": {"type": ["object", "null"], "description": "the family of tests of equal means (per level: "
                                                               "count, alpha each, rejections) and its summary"},
@@ -51,6 +52,15 @@ METRICS = _obj("ours against stock, per image (the same-seed images)", {
     "pixels": {"type": "integer"},
 }, ("rmse", "rel_mse", "flip_mean", "delta_e2000_mean", "delta_e2000_p95", "max_abs", "frac_pixels_over_1e-3"))
 
+OURS = _obj("ours' render", {**TIMES["properties"],
+                             "build_s": {**SECONDS, "description": "building the Layer BVH"},
+                             "loop": {"type": "string", "description": "megakernel | wavefront"},
+                             "trace_s": {"type": ["number", "null"]},
+                             "traversal": {"type": "string", "description": "the --traversal asked for"},
+                             "treelet_height": {"type": "integer"},
+                             "branching": {"type": "integer", "description": "children per node: 2, 4 or 8"}},
+            ("render_s", "compile_s", "build_s", "loop", "traversal", "treelet_height", "branching"))
+
 SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "title": "report.json",
@@ -68,23 +78,19 @@ SCHEMA = {
                "params": {"type": "object", "description": "the scene's $parameters given on the command line"},
                "stock": {**TIMES, "description": "stock Mitsuba's render (cached: true where its image came from "
                                                  "the stock cache)"},
-               "ours": _obj("ours' render", {**TIMES["properties"],
-                                             "build_s": {**SECONDS, "description": "building the Layer BVH"},
-                                             "loop": {"type": "string", "description": "megakernel | wavefront"},
-                                             "trace_s": {"type": ["number", "null"]},
-                                             "traversal": {"type": "string", "description": "the --traversal asked for"},
-                                             "treelet_height": {"type": "integer"},
-                                             "branching": {"type": "integer", "description": "children per node: 2, 4 or 8"}},
-                            ("render_s", "compile_s", "build_s", "loop", "traversal", "treelet_height", "branching")),
-               "auto_choices": {"type": "object", "description": "traversal auto: the mode chosen per kind of ray batch"},
+               "ours": OURS,
+               "auto_choices": {"type": "object",
+                                "description": "traversal auto: the mode chosen per kind of ray batch"},
                "features": {"type": "object", "description": "what of the scene the render used and left out"},
                "traversal": {"type": "object", "description": "the statistics pass: rays, wavefront steps, nodes, "
                                                               "leaves and triangles visited, time split, the BVH"},
-               "statistics_pass": {"type": "object", "description": "its spp and times (a separate render with counters)"},
+               "statistics_pass": {"type": "object",
+                                   "description": "its spp and times (a separate render with counters)"},
                "embree_control": {**TIMES, "description": "our loop with Mitsuba's own ray queries (Embree): the "
                                                           "control that isolates the traversal"},
                "split": {"type": "object", "description": "ours' time over stock's, split into traversal and loop"},
-               "nonfinite_pixels": {"type": "object", "description": "NaN/Inf pixels per side (set to 0 for the metrics)"},
+               "nonfinite_pixels": {"type": "object",
+                                    "description": "NaN/Inf pixels per side (set to 0 for the metrics)"},
                "gradient": {"type": "object", "description": "compare --grad: the derivatives' verdict (forward and "
                                                              "backward, same seed, then paired over render pairs)"},
                "referee": {"type": "object", "description": "extreme scales: the scene rescaled to unit size on "

@@ -115,8 +115,8 @@ def _integrator(mi, cfg: Config, path: PathSettings, build: dict):
     it); `build` holds the BVH's leaf_size and branching."""
     if cfg.stock:
         return load_integrator(mi, path.stock_inner())
-    return load_integrator(mi, {"type": path.ours_type, "traversal": cfg.traversal, "treelet_height": cfg.treelet_height,
-                                **build, **path.props})
+    return load_integrator(mi, {"type": path.ours_type, "traversal": cfg.traversal,
+                                "treelet_height": cfg.treelet_height, **build, **path.props})
 
 
 def run_config(mi, scene, cfg: Config, index: int, path: PathSettings, ref: np.ndarray, budget: float,
@@ -331,7 +331,8 @@ def html_page(configs: list[Config], table: dict, title: str) -> str:
     esc = html.escape
     base = table["base"]
     head = ("<tr><th>config</th><th>build s</th><th>compile s</th><th>spp reached</th><th>slope vs spp</th>"
-            f"<th>relMSE at equal time</th><th>× {esc(base)}</th><th>seconds to equal error</th><th>× {esc(base)}</th></tr>")
+            f"<th>relMSE at equal time</th><th>× {esc(base)}</th><th>seconds to equal error</th>"
+            f"<th>× {esc(base)}</th></tr>")
     rows, notes = [], []
     for c in configs:
         r = table["rows"][c.name]
@@ -339,13 +340,15 @@ def html_page(configs: list[Config], table: dict, title: str) -> str:
         cells = [c.name, f"{c.build_s:.2f}", f"{c.compile_s:.2f}", str(c.points[-1]["spp"]),
                  _g(slope and slope["slope"], ".2f"), _g(r["rel_mse_at_equal_time"]),
                  _g(r["error_vs_base"], ".2f") + ("*" if r.get("equal_time_extrapolated") else ""),
-                 _g(r["seconds_to_equal_error"]), _g(r["time_vs_base"], ".2f") + ("*" if r.get("equal_error_extrapolated") else "")]
+                 _g(r["seconds_to_equal_error"]),
+                 _g(r["time_vs_base"], ".2f") + ("*" if r.get("equal_error_extrapolated") else "")]
         rows.append("<tr>" + "".join(f"<td>{esc(x)}</td>" for x in cells) + "</tr>")
         if r.get("why_not"):
             notes.append(f"<li>{esc(c.name)}: n/a because {esc(r['why_not'])}</li>")
     return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>Error against run time</title>"
             "<style>body{font-family:system-ui,sans-serif;margin:1.2em 2em}table{border-collapse:collapse}"
-            "td,th{border:1px solid #ccc;padding:3px 9px;text-align:right}td:first-child,th:first-child{text-align:left}"
+            "td,th{border:1px solid #ccc;padding:3px 9px;text-align:right}"
+            "td:first-child,th:first-child{text-align:left}"
             "img{max-width:100%}</style></head><body>"
             f"<h1>Error against run time</h1><p>{esc(title)}</p>"
             f"<p>Equal time: {table['equal_time_s']:.3g} s per render (the longest every configuration reached); "

@@ -338,8 +338,8 @@ def _markdown(cmdline: str, args, rows, missing, total: str) -> str:
              f"get another triangle from ours than from Embree, and in brackets how many of those are ties: both "
              f"triangles at the same distance (float64) up to float32 resolution of the coordinates (shared edges, "
              f"coplanar overlapping triangles), where either answer is right; seconds are each side's render without "
-             f"kernel compilation (`ab.compare`) and, with several sweep workers on one machine, scenes rendering side by "
-             f"side on its cores.", "",
+             f"kernel compilation (`ab.compare`) and, with several sweep workers on one machine, scenes rendering "
+             f"side by side on its cores.", "",
              "| scene | triangles | other shapes | compared as | result | within 1e-3 | mean abs | max abs | FLIP mean "
              "| rel_mse | rays: other prim (ties) | stock s | ours s | notes |",
              "|---|---:|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]

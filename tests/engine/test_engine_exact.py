@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 
 import layerbvh
-from layerbvh.layout import (EXIT_BIT, LEAF_BIT, NODE_BOX_HI, NODE_BOX_LO, NODE_FLOATS, PAYLOAD_MASK, TRI_FACE, TRI_FLOATS,
-                             leaf_range)
+from layerbvh.layout import (EXIT_BIT, LEAF_BIT, NODE_BOX_HI, NODE_BOX_LO, NODE_FLOATS, PAYLOAD_MASK, TRI_FACE,
+                             TRI_FLOATS, leaf_range)
 
 
 def _box_entry(lo, hi, o, d):

@@ -30,9 +30,11 @@ def test_instanced_modes_agree_exactly(forest, kind):
             bad, h.instance, ref.instance, h.prim, ref.prim, h.t, ref.t,
             names=("inst", "inst_per_ray", "prim", "prim_per_ray", "t", "t_per_ray"))
         assert h.stats.inner_nodes == ref.stats.inner_nodes and h.stats.triangles == ref.stats.triangles
-        assert (h.stats.top_inner_nodes, h.stats.instance_entries) == (ref.stats.top_inner_nodes, ref.stats.instance_entries)
+        assert (h.stats.top_inner_nodes, h.stats.instance_entries) == (ref.stats.top_inner_nodes,
+                                                                       ref.stats.instance_entries)
         occ = bvhs[tail].occluded(o, d, np.full(len(o), np.inf, np.float32), mode=mode).occluded
-        assert np.array_equal(occ, ref.prim != MISS), f"{mode}: any-hit and closest-hit disagree on {(occ != (ref.prim != MISS)).sum()} rays"
+        assert np.array_equal(occ, ref.prim != MISS), \
+            f"{mode}: any-hit and closest-hit disagree on {(occ != (ref.prim != MISS)).sum()} rays"
     # Small batches: the same hits again (the batching path gathers per ray, instances included).
     small = layerbvh.build_instanced(forest["groups"], forest["instances"], treelet_height=4, batch_rays=7000)
     h = small.trace(o, d, mode="layer_sorted")
@@ -125,7 +127,8 @@ def test_top_level_boxes_hold_their_instances(forest):
     (Instance(2, np.eye(4)), r"instance 0: group 2 is not one of the 1 groups"),
     (Instance(0, np.eye(3)), r"instance 0: to_world must have shape \(4, 4\) or \(3, 4\)"),
     (Instance(0, np.diag([1.0, 1.0, 0.0, 1.0])), r"instance 0: to_world is singular"),
-    (Instance(0, np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1.0]])), r"instance 0: to_world is not affine"),
+    (Instance(0, np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1.0]])),
+     r"instance 0: to_world is not affine"),
     (Instance(0, np.full((4, 4), np.nan)), r"instance 0: to_world has non-finite entries"),
 ])
 def test_bad_instances_are_refused_by_name(bunny, instance, message):
@@ -171,7 +174,8 @@ def test_instanced_wide_trees_return_the_binary_hits(forest, branching):
     """Two-level BVHs with 4- and 8-wide nodes (top level and groups): every mode returns binary
     per_ray's instance, prim and t bits, closest and any hit."""
     o, d = forest["rays"]["incoherent"]
-    ref = layerbvh.build_instanced(forest["groups"], forest["instances"], treelet_height=4, branching=2).trace(o, d, mode="per_ray")
+    ref = layerbvh.build_instanced(forest["groups"], forest["instances"], treelet_height=4,
+                                   branching=2).trace(o, d, mode="per_ray")
     bvh = layerbvh.build_instanced(forest["groups"], forest["instances"], treelet_height=2, branching=branching,
                                    tail_rays=0, tail_fraction=0.0)
     bvh.check()

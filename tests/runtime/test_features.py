@@ -17,10 +17,14 @@ SCENES = Path(__file__).resolve().parents[2] / "scenes"
 POINT_LIT = """<scene version="3.0.0">
   <sensor type="perspective"><transform name="to_world"><lookat origin="0,0,4" target="0,0,0" up="0,1,0"/></transform>
     <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="24"/>
-      <rfilter type="box"/></film><sampler type="independent"><integer name="sample_count" value="8"/></sampler></sensor>
-  <emitter type="point"><point name="position" x="1" y="2" z="3"/><rgb name="intensity" value="30"/></emitter>
-  <shape type="cube" id="block"><transform name="to_world"><rotate y="1" angle="30"/><scale value="0.8"/></transform></shape>
-  <shape type="rectangle" id="floor"><transform name="to_world"><translate z="-1"/><scale value="5"/></transform></shape>
+      <rfilter type="box"/></film>
+    <sampler type="independent"><integer name="sample_count" value="8"/></sampler></sensor>
+  <emitter type="point"><point name="position" x="1" y="2" z="3"/>
+    <rgb name="intensity" value="30"/></emitter>
+  <shape type="cube" id="block">
+    <transform name="to_world"><rotate y="1" angle="30"/><scale value="0.8"/></transform></shape>
+  <shape type="rectangle" id="floor">
+    <transform name="to_world"><translate z="-1"/><scale value="5"/></transform></shape>
 </scene>"""
 
 
@@ -42,7 +46,8 @@ def test_left_out_features_do_not_change_the_image(case):
         props = {}
     elif case == "sphere_box":
         scene = testing.load(SCENES / "sphere_box.xml", (24, 24))
-        expect_left, expect_on = {"sort"}, {"analytic_shapes", "emitter_hits", "emitter_sampling"}  # 12 triangles: one treelet
+        # 12 triangles: one treelet
+        expect_left, expect_on = {"sort"}, {"analytic_shapes", "emitter_hits", "emitter_sampling"}
         props = {}
     else:
         scene = testing.load(SCENES / "cbox.xml", (24, 24))

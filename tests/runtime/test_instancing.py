@@ -49,18 +49,21 @@ def test_an_instance_scaled_to_zero_renders_as_stock_renders_it(tmp_path):
     (flattened onto a plane) was refused as singular. Stock renders both as absent (measured: the
     image equals the scene without them, bit for bit); ours leaves them out and matches stock, with
     a normal instance of the same group beside them."""
-    inst = '<shape type="instance"><ref id="g"/><transform name="to_world"><scale value="{}"/><translate y="{}"/></transform></shape>'
+    inst = ('<shape type="instance"><ref id="g"/>'
+            '<transform name="to_world"><scale value="{}"/><translate y="{}"/></transform></shape>')
     path = tmp_path / "hidden.xml"
     path.write_text(f"""<scene version="3.0.0"><sensor type="perspective">
         <transform name="to_world"><lookat origin="0,3,4" target="0,0,0" up="0,1,0"/></transform>
         <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film></sensor>
         <shape type="shapegroup" id="g"><shape type="cube"/></shape>
         {inst.format("0", 0.5)} {inst.format("1, 0, 1", 0.5)} {inst.format("0.5", -0.5)}
-        <shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/><scale value="4"/></transform></shape>
+        <shape type="rectangle">
+          <transform name="to_world"><rotate x="1" angle="-90"/><scale value="4"/></transform></shape>
         <emitter type="directional"><vector name="direction" value="0.3,-1,0.2"/></emitter>
         <emitter type="constant"><rgb name="radiance" value="0.3"/></emitter></scene>""")
     geo = scene_geometry.collect_geometry(mi.load_file(str(path)))
-    assert [p.instance for p in geo.placements] == [None, 2], geo.placements  # the floor, the visible cube (the third instance)
+    # the floor, the visible cube (the third instance)
+    assert [p.instance for p in geo.placements] == [None, 2], geo.placements
     r = testing.assert_matches_stock(path, spp=4, res=(16, 16), traversal="per_ray")
     assert r.mean_ref > 0.01
 
@@ -125,7 +128,8 @@ def test_hit_records_are_filled_as_embree_fills_them(traversal):
     sphere = in_instance & (stock.shape_index.numpy() == 1)  # the shapegroup's second shape: the ball
     assert in_instance.sum() > 0.2 * n and (both & ~in_instance).sum() > 0.05 * n and sphere.sum() > 20, \
         "rays should hit instanced meshes, the scene's own meshes and instanced spheres"
-    assert (ours.shape == None).numpy()[in_instance & agree].all(), "an instance hit leaves `shape` null, as Embree does"  # noqa: E711
+    assert (ours.shape == None).numpy()[in_instance & agree].all(), \
+        "an instance hit leaves `shape` null, as Embree does"  # noqa: E711
     t_o, t_s = ours.t.numpy(), stock.t.numpy()
     assert np.quantile(np.abs(t_o[agree] - t_s[agree]) / t_s[agree], 0.999) < 1e-4
     si_o = ours.compute_surface_interaction(ray, mi.RayFlags.All, active)
@@ -170,7 +174,8 @@ def test_nested_instancing_is_refused_by_name(monkeypatch):
     for nested, what in ((inst, r"Instance 'inst'"), (group, r"ShapeGroup\w* 'grp'")):
         monkeypatch.setattr(scene_geometry, "_children", lambda obj, nested=nested: real(obj) + [("nested", nested)]
                             if scene_geometry._is_shapegroup(obj) else real(obj))
-        with pytest.raises(UnsupportedShapeError, match=rf"{what} in shapegroup 'grp': nested instancing is not supported"):
+        with pytest.raises(UnsupportedShapeError,
+                           match=rf"{what} in shapegroup 'grp': nested instancing is not supported"):
             SceneTracer(scene, "per_ray")
 
 
@@ -191,7 +196,8 @@ def _box_with(shapes: dict) -> dict:
                        "film": {"type": "hdrfilm", "width": 32, "height": 32, "rfilter": {"type": "box"}},
                        "sampler": {"type": "independent", "sample_count": 8}},
             "floor": {"type": "rectangle",
-                      "to_world": mi.ScalarTransform4f().translate([0, -1, -1.5]).rotate([1, 0, 0], -90).scale([1, 2, 1])},
+                      "to_world": mi.ScalarTransform4f().translate([0, -1, -1.5]).rotate([1, 0, 0], -90)
+                                                        .scale([1, 2, 1])},
             "back": {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 0, -3.5])},
             "light": {"type": "constant"}, **shapes}
 

@@ -43,10 +43,14 @@ def _camera_like(v):
 # Each case: (origins, directions, tmax) as the caller passes them, built from eye/d/tmax arrays.
 INPUTS = {
     "drjit, tmax width 1": lambda eye, d, t: (_columns(np.broadcast_to(eye, d.shape)), _columns(d), mi.Float(t[0])),
-    "drjit, origin width 1": lambda eye, d, t: (mi.Point3f(*(mi.Float(x) for x in eye)), _columns(d), from_numpy(mi.Float, t)),
-    "drjit, all width n": lambda eye, d, t: (_columns(np.broadcast_to(eye, d.shape)), _columns(d), from_numpy(mi.Float, t)),
-    "mixed widths": lambda eye, d, t: (mi.Point3f(mi.Float(eye[0]), from_numpy(mi.Float, np.full(len(d), eye[1], np.float32)), mi.Float(eye[2])),
-                                      _columns(d), mi.Float(t[0])),
+    "drjit, origin width 1": lambda eye, d, t: (mi.Point3f(*(mi.Float(x) for x in eye)), _columns(d),
+                                                from_numpy(mi.Float, t)),
+    "drjit, all width n": lambda eye, d, t: (_columns(np.broadcast_to(eye, d.shape)), _columns(d),
+                                             from_numpy(mi.Float, t)),
+    "mixed widths": lambda eye, d, t: (mi.Point3f(mi.Float(eye[0]),
+                                                  from_numpy(mi.Float, np.full(len(d), eye[1], np.float32)),
+                                                  mi.Float(eye[2])),
+                                       _columns(d), mi.Float(t[0])),
     "numpy point, python tmax": lambda eye, d, t: (eye, d, float(t[0])),
 }
 
@@ -79,7 +83,8 @@ def test_an_input_of_another_width_is_refused_by_name(bunny_bvhs):
     v, _, batched = bunny_bvhs
     eye, d = _camera_like(v)
     with pytest.raises(ValueError, match=r"tmax has 7 entries, origins\[0\] has 10000"):
-        batched.trace(_columns(np.broadcast_to(eye, d.shape)), _columns(d), from_numpy(mi.Float, np.ones(7, np.float32)))
+        batched.trace(_columns(np.broadcast_to(eye, d.shape)), _columns(d),
+                      from_numpy(mi.Float, np.ones(7, np.float32)))
     with pytest.raises(ValueError, match=r"origins\[1\] has 3 entries, directions\[0\] has 10000"):
         batched.occluded(mi.Point3f(mi.Float(0), mi.Float([0, 1, 2]), mi.Float(0)), _columns(d)).occluded
     with pytest.raises(ValueError, match=r"directions must have shape \(N, 3\), got \(4, 2\)"):

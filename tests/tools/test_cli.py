@@ -220,7 +220,8 @@ def test_a_wrapped_scene_we_do_not_mirror_is_named_as_what_it_is(tmp_path, capsy
         <integrator type="moment"><integrator type="{integrator}"><integer name="max_depth" value="3"/></integrator>
         </integrator>
         <sensor type="perspective"><film type="hdrfilm">
-            <integer name="width" value="8"/><integer name="height" value="8"/></film></sensor><emitter type="constant"/>
+            <integer name="width" value="8"/><integer name="height" value="8"/></film></sensor>
+        <emitter type="constant"/>
         <shape type="rectangle"><transform name="to_world"><translate z="3"/></transform></shape></scene>""")
         return scene
     scene = fog("prb")

@@ -36,7 +36,8 @@ CURVE = """<scene version="3.0.0">
 
 def test_max_depth_minus_one_survives_the_uint32_round_trip():
     scene = mi.load_string(INSTANCED.replace('<shape type="instance" id="inst1"><ref id="grp"/></shape>', "")
-                           .replace('<shape type="shapegroup" id="grp"><shape type="cube"/></shape>', '<shape type="cube"/>'))
+                           .replace('<shape type="shapegroup" id="grp"><shape type="cube"/></shape>',
+                                    '<shape type="cube"/>'))
     assert path_props(mi, scene)["max_depth"] == -1
 
 
@@ -54,8 +55,8 @@ def test_table_has_a_verdict_per_scene_and_names_refused_plugins(tmp_path):
                                             cbox, count=1, flags=re.S))
     md, js = tmp_path / "table.md", tmp_path / "table.json"
     proc = subprocess.run([sys.executable, str(ROOT / "scripts" / "third_party.py"), "--root", str(root),
-                           "--scenes", "cbox.xml", "direct.xml", "instanced.xml", "curve.xml", "missing/*.xml", "cbox.xml@ptracer",
-                           "cbox.xml@prb_projective", "--res", "16", "16",
+                           "--scenes", "cbox.xml", "direct.xml", "instanced.xml", "curve.xml", "missing/*.xml",
+                           "cbox.xml@ptracer", "cbox.xml@prb_projective", "--res", "16", "16",
                            "--spp", "4", "--check-rays", "20000", "--md", str(md), "--json", str(js),
                            "--out", str(tmp_path / "sweep"), "--workers", "2"],
                           capture_output=True, text=True, timeout=600, cwd=ROOT)
@@ -80,7 +81,8 @@ def test_table_has_a_verdict_per_scene_and_names_refused_plugins(tmp_path):
     refused = rows["curve.xml"]["result"]
     assert refused.startswith("refused:") and "'linearcurve'" in refused and "hair" in refused
     table = md.read_text()
-    assert "| `cbox.xml` | 36 | - | path |" in table and "| moment(direct) |" in table and "Not found under root (skipped): `missing/*.xml`" in table
+    assert "| `cbox.xml` | 36 | - | path |" in table and "| moment(direct) |" in table
+    assert "Not found under root (skipped): `missing/*.xml`" in table
     assert not list(tmp_path.glob(".*.tmp*")), "temporary files left behind"
     # Each scene was a point of the sweep (its own process), with its row in the sweep's table too.
     sweep_rows = {r["scene"]: r for r in json.loads((tmp_path / "sweep" / "results.json").read_text())["rows"]}

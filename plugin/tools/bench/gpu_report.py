@@ -68,7 +68,8 @@ def _md(head: list[str], rows: list[list]) -> str:
 def check_table(measured: dict) -> str:
     """paper_mix's recorded rays: both modes' throughput, the measured ratio beside the model's."""
     rows = [[r["branching"], r["treelet_height"], r["kind"], f"{r['rays']:,}",
-             f"{r['rays'] / r['seconds']['per_ray'] / 1e6:.1f}", f"{r['rays'] / r['seconds']['layer_sorted'] / 1e6:.1f}",
+             f"{r['rays'] / r['seconds']['per_ray'] / 1e6:.1f}",
+             f"{r['rays'] / r['seconds']['layer_sorted'] / 1e6:.1f}",
              f"{r['measured_sorted_over_per_ray']:.2f}x", f"{r['model_dram_per_ray_over_sorted']:.2f}x",
              f"{r['model_total_per_ray_over_sorted']:.2f}x",
              f"{r['hits_differing_from_replay']['per_ray']} / {r['hits_differing_from_replay']['layer_sorted']}"]
@@ -84,7 +85,8 @@ def soup_table(measured: dict) -> str:
         sp = r["split"]["layer_sorted"]
         rows.append([r["branching"], r["treelet_height"], r["query"], f"{r['rays']:,}",
                      f"{r['rays'] / r['seconds']['per_ray'] / 1e6:.0f}",
-                     f"{r['rays'] / r['seconds']['layer_sorted'] / 1e6:.0f}", f"{r['measured_sorted_over_per_ray']:.2f}x",
+                     f"{r['rays'] / r['seconds']['layer_sorted'] / 1e6:.0f}",
+                     f"{r['measured_sorted_over_per_ray']:.2f}x",
                      sp["steps"], r["modes_disagree"]])
     return _md(["K", "H", "query", "rays", "per_ray Mrays/s", "layer_sorted Mrays/s", "speed-up", "steps",
                 "hits differing"], rows)
@@ -96,8 +98,8 @@ def kernel_table(splits: list[dict]) -> str:
         rows.append([r["branching"], r["treelet_height"], r["mode"], f"{r['rays']:,}", r["launches"],
                      f"{r['traversal_ms']:.1f} ({r['steps']})", f"{r['between_ms']:.1f}", f"{r['sort_ms']:.1f}",
                      f"{r['rest_ms']:.1f}", f"{r['host_gaps_ms']:.1f}", f"{r['wall_ms']:.1f}"])
-    return _md(["K", "H", "mode", "rays", "launches", "traversal kernels ms (launches)", "between-step kernels ms", "sort ms",
-                "set-up, gathers ms", "host gaps ms", "wall ms"], rows)
+    return _md(["K", "H", "mode", "rays", "launches", "traversal kernels ms (launches)", "between-step kernels ms",
+                "sort ms", "set-up, gathers ms", "host gaps ms", "wall ms"], rows)
 
 
 def section(folder: Path) -> str:
@@ -121,8 +123,10 @@ def section(folder: Path) -> str:
         text = log.read_text()
         parts += [f"### Where the GPU's time goes: `{log.name}`", "",
                   f"`python3 scripts/gpu_check_device.py out/gpu_check --backend cuda --kernels RAYS --soup TRIS`; "
-                  "each launch's execution time from Dr.Jit's kernel history. Host gaps: wall time with no kernel running (tracing the step's kernel in Python, the "
-                  "counts read back each step: two in these listings, one since PERFORMANCE.md entry 45; the launches).", "", kernel_table(kernel_split(text)), ""]
+                  "each launch's execution time from Dr.Jit's kernel history. Host gaps: wall time with no kernel "
+                  "running (tracing the step's kernel in Python, the counts read back each step: two in these "
+                  "listings, one since PERFORMANCE.md entry 45; the launches).", "",
+                  kernel_table(kernel_split(text)), ""]
     return "\n".join(parts)
 
 

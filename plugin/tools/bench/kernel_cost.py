@@ -229,8 +229,8 @@ def main(argv=None) -> int:
     print(f"# Walk-kernel cost per branching\n\n`{command}`\n\n{cpu}, {os.cpu_count()} cores, {lanes} lanes; "
           f"{name} ({len(f):,} triangles), {args.rays:,} rays, per_ray, median of {args.runs} interleaved rounds; "
           f"× first K: median per-round speed-up over the first branching listed\n")
-    print("| rays | K | Mrays/s | × first K | IR loop | always | node branch | triangle branch | iters/ray | packet iters/ray "
-          "| SIMD use | ns/packet-iter (per core) | inner/ray | box tests/ray | tris/ray |")
+    print("| rays | K | Mrays/s | × first K | IR loop | always | node branch | triangle branch | iters/ray "
+          "| packet iters/ray | SIMD use | ns/packet-iter (per core) | inner/ray | box tests/ray | tris/ray |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     rows = []
     for kind, gen, seed in (("incoherent", meshes.incoherent_rays, 2), ("camera", meshes.camera_rays, 1)):
@@ -239,7 +239,8 @@ def main(argv=None) -> int:
             k = c.branching
             rows.append(asdict(c))
             print(f"| {kind} | {k} | {c.mrays_s:.2f} | {c.speedup_vs_first:.2f} | {c.ir['loop']} | {c.ir['always']} "
-                  f"| {c.ir['node_branch']} | {c.ir['triangle_branch']} | {c.iterations_per_ray:.1f} | {c.packet_iterations_per_ray:.2f} "
+                  f"| {c.ir['node_branch']} | {c.ir['triangle_branch']} | {c.iterations_per_ray:.1f} "
+                  f"| {c.packet_iterations_per_ray:.2f} "
                   f"| {c.simd_use:.2f} | {c.ns_per_packet_iteration:.0f} | {c.inner_per_ray:.1f} "
                   f"| {c.box_tests_per_ray:.1f} | {c.tris_per_ray:.1f} |", flush=True)
     if args.json:

@@ -140,8 +140,10 @@ def measure_scene(mi, req: LocalityRequest, progress: bool = True) -> dict:
     doc.update({
         "scene": str(req.scene), "resolution": list(res), "spp": req.spp, "seed": req.seed,
         "triangles": int(len(f)), "branching": req.branching,
-        "leaf_size": layerbvh.default_leaf_size(req.branching) if req.leaf_size is None else req.leaf_size, "record_s": record_s,
-        "kinds": {k: {"recorded": int(len(rays[k][0])), "traced": meta["kinds"][k]["traced"]} for k in req.kinds if k in rays},
+        "leaf_size": layerbvh.default_leaf_size(req.branching) if req.leaf_size is None else req.leaf_size,
+        "record_s": record_s,
+        "kinds": {k: {"recorded": int(len(rays[k][0])), "traced": meta["kinds"][k]["traced"]}
+                  for k in req.kinds if k in rays},
         "kinds_missing": missing, "sampled": req.sample,
         "presets": {r.preset: r.preset_params for r in run.rows},
         "machine": machine(),
@@ -177,7 +179,8 @@ def headline(doc: dict) -> dict:
     sel = {r["mode"]: r for r in rows if tuple(r.get(c) for c in config) == tuple(first.get(c) for c in config)}
     p, s = sel.get("per_ray"), sel.get("layer_sorted")
     return {"rays": first["kind"], "preset": first["preset"], "warp": first["warp"],
-            "per_ray_transactions": p and p["transactions_per_ray"], "sorted_transactions": s and s["transactions_per_ray"],
+            "per_ray_transactions": p and p["transactions_per_ray"],
+            "sorted_transactions": s and s["transactions_per_ray"],
             "per_ray_dram_bytes": p and p["dram_bytes_per_ray"], "sorted_dram_bytes": s and s["dram_bytes_per_ray"],
             "sorted_sort_bytes": s and s["sort_bytes_per_ray"],
             "sorted_total_vs_per_ray": (s["total_dram_bytes_per_ray"] / p["total_dram_bytes_per_ray"])
@@ -269,8 +272,8 @@ def benchmarks_section(doc: dict, fig_rel: str) -> str:
         parts += [f"### {scene} ({info['triangles']:,} triangles)", "",
                   f"Rays recorded at {info['resolution'][0]}x{info['resolution'][1]}, {info['spp']} spp: {kinds}"
                   + (f", each sampled to at most {info['sampled']:,}" if info.get("sampled") else "") + ". Trace "
-                  + ("checked against the kernel: every ray's hit, work counts and loads of each kind equal." if exact else
-                     "check FAILED on some rays: see the run's summary.md."), ""]
+                  + ("checked against the kernel: every ray's hit, work counts and loads of each kind equal."
+                     if exact else "check FAILED on some rays: see the run's summary.md."), ""]
         checked = model_checked.notes({r.preset: r.preset_params.get("kind", "gpu") for r in rows})
         parts += [f"- {v}" for v in model_checked.with_note(preset_verdict(rows), checked).values()] + [""]
         first = [r for r in rows if r.preset == rows[0].preset]
@@ -353,8 +356,8 @@ def plot_png(doc: dict) -> bytes:
             sel = [r for r in rows if r["preset"] == p and r["kind"] == k]
             # (one tree per plot: the headline branching's rows, a render's tree if it was measured)
             ks = {r.get("branching", 2) for r in sel}
-            sel = [r for r in sel if r.get("branching", 2) == (layerbvh.DEFAULT_BRANCHING if layerbvh.DEFAULT_BRANCHING in ks
-                                                               else min(ks))]
+            tree = layerbvh.DEFAULT_BRANCHING if layerbvh.DEFAULT_BRANCHING in ks else min(ks)
+            sel = [r for r in sel if r.get("branching", 2) == tree]
             bars = sorted({(r["mode"], r["warp"]) for r in sel}, key=lambda mw: (mw[1], layerbvh.MODES.index(mw[0])))
             heights = sorted({r["treelet_height"] for r in sel})
             width = 0.8 / max(len(bars), 1)
@@ -422,7 +425,8 @@ def summary_md(doc: dict, command: str) -> str:
              f"Trace check: {check}.", "", "Presets:", ""]
     lines += [f"- {p}" for p in doc["preset_lines"]]
     lines += ["", "## Verdict", ""] + [f"- {v}" for v in doc["preset_verdict"].values()]
-    lines += ["", "Per kind of rays:", ""] + [f"- {v}" for v in doc["verdict"]] + ["", "## Rows", "", table_md(doc["results"])]
+    lines += ["", "Per kind of rays:", ""] + [f"- {v}" for v in doc["verdict"]]
+    lines += ["", "## Rows", "", table_md(doc["results"])]
     return "\n".join(lines)
 
 
@@ -476,5 +480,6 @@ def add_parser(sub) -> None:
     lp.add_argument("--sample", type=int, help="replay at most N rays per kind, drawn uniformly (default: all)")
     lp.add_argument("--cap", type=int, default=DEFAULT_CAP, help="rays recorded per kind at most (default %(default)s)")
     lp.add_argument("--no-check", action="store_true", help="skip comparing each mode's trace with the kernel")
-    lp.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant: any llvm_* or cuda_* (default %(default)s)")
+    lp.add_argument("--variant", default="llvm_ad_rgb",
+                    help="Mitsuba variant: any llvm_* or cuda_* (default %(default)s)")
     lp.add_argument("--no-progress", action="store_true")

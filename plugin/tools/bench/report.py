@@ -76,7 +76,8 @@ def headline_rows(rows: list[dict]) -> list[dict]:
                     "binary_per_ray": binary and binary["mrays_s"],
                     "sorted": srt["mrays_s"], "sorted_h": srt["treelet_height"], "sorted_layout": layout_of(srt),
                     "sorted_vs_per_ray": srt["mrays_s"] / per["mrays_s"],
-                    "sorted_vs_embree": srt["mrays_s"] / emb["mrays_s"], "per_ray_vs_embree": per["mrays_s"] / emb["mrays_s"],
+                    "sorted_vs_embree": srt["mrays_s"] / emb["mrays_s"],
+                    "per_ray_vs_embree": per["mrays_s"] / emb["mrays_s"],
                     "memory_vs_per_ray": mem_s / mem_p if mem_s and mem_p else None,
                     "auto": auto and auto["mrays_s"], "auto_choice": auto and btf.mode_label(auto),
                     "auto_vs_best_of_two": auto and auto.get("ratio_best_of_two")})
@@ -84,14 +85,15 @@ def headline_rows(rows: list[dict]) -> list[dict]:
 
 
 def headline_table(rows: list[dict]) -> str:
-    lines = ["| scene / mesh | triangles | rays | query | Embree Mrays/s | per_ray (best K, h) | layer_sorted (best K, h) "
-             "| sorted × per_ray | sorted × Embree | per_ray × Embree | binary per_ray × Embree "
-             "| sorted memory × per_ray | auto (its choice) | auto × faster of the two |",
+    lines = ["| scene / mesh | triangles | rays | query | Embree Mrays/s | per_ray (best K, h) "
+             "| layer_sorted (best K, h) | sorted × per_ray | sorted × Embree | per_ray × Embree "
+             "| binary per_ray × Embree | sorted memory × per_ray | auto (its choice) | auto × faster of the two |",
              "|---|---:|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
     for h in headline_rows(rows):
         binary = h["binary_per_ray"] and h["binary_per_ray"] / h["embree"]
         lines.append(f"| {h['mesh']} | {h['triangles']:,} | {h['rays']} ({h['ray_count']:,}) "
-                     f"| {h['query'].replace('_', '-')} | {h['embree']:.2f} | {h['per_ray']:.2f} ({h['per_ray_layout']}) "
+                     f"| {h['query'].replace('_', '-')} | {h['embree']:.2f} "
+                     f"| {h['per_ray']:.2f} ({h['per_ray_layout']}) "
                      f"| {h['sorted']:.2f} ({h['sorted_layout']}) | {h['sorted_vs_per_ray']:.2f} "
                      f"| {h['sorted_vs_embree']:.2f} | {h['per_ray_vs_embree']:.2f} | {_f(binary)} "
                      f"| {_f(h['memory_vs_per_ray'])} "
@@ -118,7 +120,8 @@ def branching_table(rows: list[dict]) -> str:
                 s = [r for r in rs if r["mode"] == "layer_sorted" and _k(r) == k and r["treelet_height"] == h]
                 cells.append(_f(s[0].get("ratio_per_ray_same_h")) if s else "–")
             lines.append(f"| {mesh} | {kind} | {k} | {per['mrays_s']:.2f} (h={per['treelet_height']}) "
-                         f"| {per['mrays_s'] / emb['mrays_s']:.2f} | {_f(binary and per['mrays_s'] / binary['mrays_s'])} "
+                         f"| {per['mrays_s'] / emb['mrays_s']:.2f} "
+                         f"| {_f(binary and per['mrays_s'] / binary['mrays_s'])} "
                          f"| {_f(per['inner_per_ray'], '.1f')} | {_f(per.get('box_tests_per_ray'), '.1f')} "
                          f"| {_f(per.get('iterations_per_ray'), '.1f')} | " + " | ".join(cells)
                          + f" | {_f(per['bvh_bytes'] and per['bvh_bytes'] / MIB, '.1f')} |")
@@ -132,11 +135,12 @@ def full_table(rs: list[dict]) -> str:
     for r in rs:
         ts = r.get("time_split_s") or {}
         lines.append(
-            f"| {btf.mode_label(r)} | {_f(_k(r), 'd')} | {_f(r['treelet_height'], 'd')} | {r['mrays_s']:.2f} | {min(r['runs']):.2f}–"
-            f"{max(r['runs']):.2f} | {r['ratio_per_ray']:.2f} | {r['ratio_embree']:.2f} "
+            f"| {btf.mode_label(r)} | {_f(_k(r), 'd')} | {_f(r['treelet_height'], 'd')} | {r['mrays_s']:.2f} "
+            f"| {min(r['runs']):.2f}–{max(r['runs']):.2f} | {r['ratio_per_ray']:.2f} | {r['ratio_embree']:.2f} "
             f"| {_f(r['inner_per_ray'], '.1f')} | {_f(r['leaves_per_ray'])} | {_f(r['tris_per_ray'], '.1f')} "
             f"| {_f(r['steps'], 'd')} | " + " | ".join(_f(ts.get(k), '.3f') for k in STAGES)
-            + f" | {_f(r['bvh_bytes'] and r['bvh_bytes'] / MIB, '.1f')} | {_f(r['work_bytes'] and r['work_bytes'] / MIB, '.1f')} "
+            + f" | {_f(r['bvh_bytes'] and r['bvh_bytes'] / MIB, '.1f')} "
+            f"| {_f(r['work_bytes'] and r['work_bytes'] / MIB, '.1f')} "
             f"| {_f(r.get('rss_extra_bytes') and r['rss_extra_bytes'] / MIB, '.0f')} |")
     return "\n".join(lines)
 
@@ -293,7 +297,8 @@ def converge_section(dirs: list[Path], out_dir: Path) -> list[str]:
     for d in dirs:
         doc = json.loads((d / "convergence.json").read_text())
         table = (d / "convergence.md").read_text().split("\n", 2)[2].strip()  # drop the file's own title
-        rel = d.resolve().relative_to(out_dir.resolve()) if d.resolve().is_relative_to(out_dir.resolve()) else d.resolve()
+        rel = d.resolve()
+        rel = rel.relative_to(out_dir.resolve()) if rel.is_relative_to(out_dir.resolve()) else rel
         configs = ",".join(c["name"] for c in doc["configs"])
         parts += [f"### {Path(doc['scene']).name}", "",
                   f"`.venv/bin/layerbvh converge {doc['scene']} --budget {doc['budget_s']:g} --res "
@@ -337,7 +342,9 @@ def document(bench: list[dict], scaling: dict | None, fig_dir: str, converge: li
               "Best layout (branching K, treelet height h) of `layer_sorted` per ray set, against the best layout of "
               "`per_ray` (the same BVH, one kernel, a per-ray stack), the binary `per_ray` (K=2, the paper's tree) and "
               "Embree. `auto` runs on the h=4 layout (the integrator's "
-              "default) and is compared with the faster (by median) of `per_ray` and `layer_sorted` on that layout: the median over rounds of auto's throughput over that mode's in the same round (the three run back to back).", "",
+              "default) and is compared with the faster (by median) of `per_ray` and `layer_sorted` on that layout: "
+              "the median over rounds of auto's throughput over that mode's in the same round (the three run back "
+              "to back).", "",
               headline_table(rows), "",
               f"![throughput against treelet height]({fig_dir}/throughput_vs_height.png)", "",
               "## Branching", "",

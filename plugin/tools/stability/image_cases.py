@@ -102,14 +102,17 @@ for _ior in ("1.0001", "1.5", "0.9", "0.7"):
     case(f"dielectric_ior_{_ior}", "image", f"smooth dielectric block, int_ior {_ior} in air")(
         lambda scale, _ior=_ior: image_case(f"dielectric_ior_{_ior}", "dielectric", scale, ior=_ior))
 
-case("total_internal_reflection", "image", "dielectric block of int_ior 2.4: total internal reflection beyond 24.6 degrees")(
+case("total_internal_reflection", "image",
+     "dielectric block of int_ior 2.4: total internal reflection beyond 24.6 degrees")(
     lambda scale: image_case("total_internal_reflection", "dielectric", scale, ior="2.4"))
 
 case("facing_mirrors", "image", "two facing perfect mirrors 1.98 apart with a diffuse block between, max_depth 64")(
     lambda scale: image_case("facing_mirrors", "facing_mirrors", scale))
 
-case("infinite_mirrors", "image", "Mitsuba's infinite_mirrors test scene: three chrome sphere meshes under an environment map")(
-    lambda scale: image_case("infinite_mirrors", "infinite_mirrors", scale, control="chrome.specular_reflectance.value"))
+case("infinite_mirrors", "image",
+     "Mitsuba's infinite_mirrors test scene: three chrome sphere meshes under an environment map")(
+    lambda scale: image_case("infinite_mirrors", "infinite_mirrors", scale,
+                             control="chrome.specular_reflectance.value"))
 
 for _medium, _what, _params in (
         ("medium_dense", "a homogeneous medium of density 200 (albedo 0.9) in a null-BSDF block, volpath",
@@ -127,4 +130,5 @@ for _depth in (1, 2, 64):
     case(f"max_depth_{_depth}", "image", f"the glass block scene (int_ior 1.5) with max_depth {_depth}")(
         lambda scale, _depth=_depth: image_case(f"max_depth_{_depth}", "dielectric", scale, max_depth=str(_depth),
                                                 # at max_depth 1 only emitters are seen: the light's radiance
-                                                **({"control": "ceiling_light.emitter.radiance.value"} if _depth == 1 else {})))
+                                                **({"control": "ceiling_light.emitter.radiance.value"}
+                                                   if _depth == 1 else {})))

@@ -10,8 +10,8 @@ from layerbvh import MAX_DEPTH, MISS, from_numpy, meshes
 from layerbvh_mitsuba.ab import embree
 from layerbvh_mitsuba.repo import SCENES
 from layerbvh_mitsuba.runtime.adapter import SceneTracer
-from layerbvh_mitsuba.tools.stability.machinery import (CaseResult, _mi, _n, _rng, against_embree, box_bunny, bunny, case,
-    embree_hits, nonfinite_hits, random_rays, trace_modes)
+from layerbvh_mitsuba.tools.stability.machinery import (CaseResult, _mi, _n, _rng, against_embree, box_bunny, bunny,
+                                                        case, embree_hits, nonfinite_hits, random_rays, trace_modes)
 from layerbvh_mitsuba.tools.stability.ray_cases import aimed_rays
 
 
@@ -82,7 +82,8 @@ def facing_all(d, target, pairs, fn) -> np.ndarray:
     return out
 
 
-@case("watertight_edges_vertices", "rays", "rays aimed exactly at the shared edges and vertices of a closed sphere and cube, near the origin and (x100) moved to 1e5; a leak passes through")
+@case("watertight_edges_vertices", "rays", "rays aimed exactly at the shared edges and vertices of a closed sphere "
+      "and cube, near the origin and (x100) moved to 1e5; a leak passes through")
 def watertight(scale):
     rng = _rng("watertight")
     per_target = max(1, int(2 * scale))
@@ -96,7 +97,8 @@ def watertight(scale):
             _, h, _ = trace_modes(vv.astype(np.float32), f, o, d)
             emb = embree_hits(vv, f, o, d, with_t=True)
             rows.append((f"{name}@{offset:g}", vv, f, o, d, leaks(h.prim, h.t, dist, size),
-                         leaks(emb[False][1], emb[False][0], dist, size), leaks(emb[True][1], emb[True][0], dist, size)))
+                         leaks(emb[False][1], emb[False][0], dist, size),
+                         leaks(emb[True][1], emb[True][0], dist, size)))
     v_all = np.concatenate([r[1] for r in rows])
     offs = np.cumsum([0] + [len(r[1]) for r in rows[:-1]])
     f_all = np.concatenate([r[2] + k for r, k in zip(rows, offs)])
@@ -105,7 +107,8 @@ def watertight(scale):
     res = against_embree("watertight_edges_vertices", v_all, f_all, o_all, d_all,
                          extra={"leaks": (ours, True), "Embree leaks": (e_def, False), "robust leaks": (e_rob, False)},
                          notes="; ".join(f"{r[0]}: ours {r[5]}, Embree {r[6]}/{r[7]}" for r in rows))
-    res.figures["per_mesh"] = [{"mesh": r[0], "rays": len(r[3]), "ours": r[5], "embree": r[6], "robust": r[7]} for r in rows]
+    res.figures["per_mesh"] = [{"mesh": r[0], "rays": len(r[3]), "ours": r[5], "embree": r[6], "robust": r[7]}
+                               for r in rows]
     return res
 
 
@@ -127,7 +130,8 @@ def leaks(prim, t, dist, size: float) -> int:
     return int(((prim == MISS) | (t > dist * (1 + 1e-3) + 1e-3 * size)).sum())
 
 
-@case("spawn_ray_self_hits", "rays", "rays leaving the default scene's surfaces (Mitsuba's spawn_ray, both hemispheres), also with the scene moved to 1e5: none may hit its own triangle")
+@case("spawn_ray_self_hits", "rays", "rays leaving the default scene's surfaces (Mitsuba's spawn_ray, both "
+      "hemispheres), also with the scene moved to 1e5: none may hit its own triangle")
 def spawn_ray_self_hits(scale):
     mi = _mi()
     rng = _rng("spawn")
@@ -165,7 +169,8 @@ def spawn_ray_self_hits(scale):
                       "; ".join(notes), {"per_offset": {str(k): v for k, v in counts.items()}})
 
 
-@case("tiny_meshes", "rays", "all triangles at one point (1,000), one triangle, no triangles: bounded build depth, correct hits")
+@case("tiny_meshes", "rays",
+      "all triangles at one point (1,000), one triangle, no triangles: bounded build depth, correct hits")
 def tiny_meshes(scale):
     rng = _rng("tiny")
     n = _n(scale, 10_000)
@@ -177,7 +182,8 @@ def tiny_meshes(scale):
         bvh.check()
         depth_max = max(depth_max, bvh.stats.depth)
         # Half the rays aimed at the geometry (the point / inside the triangle), half at random.
-        tgt = v[f].mean(1)[rng.integers(0, len(f), n)] + (0 if name == "one point" else rng.uniform(-0.3, 0.3, (n, 3)) * [1, 1, 0])
+        tgt = v[f].mean(1)[rng.integers(0, len(f), n)] + (
+            0 if name == "one point" else rng.uniform(-0.3, 0.3, (n, 3)) * [1, 1, 0])
         o, d, _ = aimed_rays(tgt, np.tile([0.0, 0.0, 1.0], (n, 1)), rng.uniform(0.5, 2, n), rng, spread=1.0)
         r = against_embree(f"tiny:{name}", v, f, o, d)
         tried += r.tried
@@ -193,8 +199,9 @@ def tiny_meshes(scale):
     ok &= empty_hits == 0 and depth_max < MAX_DEPTH
     notes.append(f"no triangles: {empty_hits} hits")
     return CaseResult("tiny_meshes", "rays", tried, real, real_r, 0, ok,
-                      f"all-at-one-point mesh never hit, empty mesh never hit ({empty_hits}), build depth {depth_max} < "
-                      f"{MAX_DEPTH}, one triangle within the Embree rule", "; ".join(notes), {"depth_max": depth_max})
+                      f"all-at-one-point mesh never hit, empty mesh never hit ({empty_hits}), "
+                      f"build depth {depth_max} < {MAX_DEPTH}, one triangle within the Embree rule", "; ".join(notes),
+                      {"depth_max": depth_max})
 
 
 @case("bad_data", "rays", "NaN/Inf vertex positions (clear error naming the shape), NaN/Inf/zero rays (misses)")
@@ -242,5 +249,6 @@ def bad_data(scale):
     ok &= hits_on_bad == 0 and nonfinite == 0
     notes.append(f"{int(bad_rays.sum()):,} NaN/Inf/zero rays of {n:,}")
     return CaseResult("bad_data", "rays", n, None, None, nonfinite, ok,
-                      f"NaN and Inf vertices refused naming shape and vertex; bad rays reported as hits {hits_on_bad} = 0 "
+                      "NaN and Inf vertices refused naming shape and vertex; "
+                      f"bad rays reported as hits {hits_on_bad} = 0 "
                       f"in every mode (closest and any hit)", "; ".join(notes))

@@ -7,7 +7,7 @@ import numpy as np
 
 from layerbvh import MISS, meshes
 from layerbvh_mitsuba.tools.stability.machinery import (CaseResult, _n, _rng, against_embree, box_bunny, bunny, case,
-    embree_hits, random_rays, trace_modes)
+                                                        embree_hits, random_rays, trace_modes)
 
 
 # -- ray level: the cases ------------------------------------------------------------------------------
@@ -61,7 +61,8 @@ def aimed_rays(targets: np.ndarray, normals: np.ndarray, dist, rng, spread: floa
     return o.astype(np.float32), (d / t[:, None]).astype(np.float32), t
 
 
-@case("sliver_triangles", "rays", "a flat strip of 2,000 slivers (1e-3 x 1000, aspect 1e6), turned at random; rays aimed inside it")
+@case("sliver_triangles", "rays",
+      "a flat strip of 2,000 slivers (1e-3 x 1000, aspect 1e6), turned at random; rays aimed inside it")
 def sliver_triangles(scale):
     rng = _rng("sliver")
     cols, width, length = 1000, 1e-3, 1000.0
@@ -105,7 +106,8 @@ def degenerate_mix(v: np.ndarray, f: np.ndarray, rng, share: float = 0.3):
     axis = rng.integers(0, 3, len(line))
     pts = np.repeat(v[a[line]][:, None, :], 3, 1)
     span = v[b[line], axis] - v[a[line], axis] + 1e-3
-    pts[np.arange(len(line))[:, None], np.arange(3)[None, :], axis[:, None]] += np.array([0.0, 0.3, 1.0])[None] * span[:, None]
+    step = np.array([0.0, 0.3, 1.0])[None] * span[:, None]
+    pts[np.arange(len(line))[:, None], np.arange(3)[None, :], axis[:, None]] += step
     pts = pts.astype(np.float32).astype(np.float64)
     deg[line] = len(v) + np.arange(3 * len(line)).reshape(-1, 3)
     v2 = np.concatenate([v, pts.reshape(-1, 3)])
@@ -120,7 +122,8 @@ def degenerate_mix(v: np.ndarray, f: np.ndarray, rng, share: float = 0.3):
     return v2, f2, is_deg, orig
 
 
-@case("degenerate_triangles", "rays", "the bunny with 30% zero-area triangles mixed in (repeated vertices, single points, collinear); random rays")
+@case("degenerate_triangles", "rays", "the bunny with 30% zero-area triangles mixed in (repeated vertices, "
+      "single points, collinear); random rays")
 def degenerate_triangles(scale):
     rng = _rng("degenerate")
     v, f = bunny()
@@ -167,7 +170,8 @@ def covering_min_id(v, f, points, eps: float = 1e-6) -> np.ndarray:
     def edge(p, q):
         return (q[..., 0] - p[..., 0]) * (x[..., 1] - p[..., 1]) - (q[..., 1] - p[..., 1]) * (x[..., 0] - p[..., 0])
     e = np.stack([edge(a, b), edge(b, c), edge(c, a)])
-    orient = np.sign((b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0]))
+    orient = np.sign((b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1])
+                     - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0]))
     e = e * orient
     inside = np.all(e > eps, axis=0)
     touching = np.all(e > -eps, axis=0)
@@ -177,7 +181,8 @@ def covering_min_id(v, f, points, eps: float = 1e-6) -> np.ndarray:
     return np.where(first_touch < first_in, -1, np.where(first_in < len(f), first_in, MISS))
 
 
-@case("coplanar_overlap", "rays", "duplicated bunny (every triangle twice) and 62 overlapping coplanar triangles in z = 0: the lower id must win; the same set turned at random (ties decided by rounding)")
+@case("coplanar_overlap", "rays", "duplicated bunny (every triangle twice) and 62 overlapping coplanar triangles "
+      "in z = 0: the lower id must win; the same set turned at random (ties decided by rounding)")
 def coplanar_overlap(scale):
     rng = _rng("coplanar")
     n = _n(scale)
@@ -219,7 +224,8 @@ def coplanar_overlap(scale):
     return res
 
 
-@case("axis_aligned_rays", "rays", "rays along +-x, +-y, +-z with the other components +0 or -0, origins in the default scene, many on vertex coordinates (slab and triangle planes)")
+@case("axis_aligned_rays", "rays", "rays along +-x, +-y, +-z with the other components +0 or -0, origins in the "
+      "default scene, many on vertex coordinates (slab and triangle planes)")
 def axis_aligned_rays(scale):
     rng = _rng("axis")
     v, f = box_bunny()
@@ -238,7 +244,8 @@ def axis_aligned_rays(scale):
                           notes=f"{int(np.signbit(d[d == 0]).sum()):,} -0 components")
 
 
-@case("grazing_rays", "rays", "an exactly planar 10 x 10 sheet of 51,200 triangles (z = y / 2); rays within 1e-7..1e-6 rad of it, descending onto its middle (must hit) or rising from it (must miss)")
+@case("grazing_rays", "rays", "an exactly planar 10 x 10 sheet of 51,200 triangles (z = y / 2); rays within "
+      "1e-7..1e-6 rad of it, descending onto its middle (must hit) or rising from it (must miss)")
 def grazing_rays(scale):
     rng = _rng("grazing")
     # Grid spacing 1/16 and slope 1/2 keep every vertex exactly on the plane in float32, so the

@@ -43,14 +43,15 @@ def _scale_section(results) -> list[str]:
     lines = ["## Extreme scales: who matches the referee", "",
              "The scene `scenes/stability/scaled.xml` (a cube on a floor, a directional light and a constant sky) does "
              "not change its image with its scale, so its render at scale 1 is the referee for every other scale "
-             f"(`plugin/tools/stability/scale_cases.py`; {r.notes}). Image mean against the referee's, and the share of "
-             f"pixels within the same-seed tolerance of it; *matches*: which side is within {scale_cases.TOLERANCE:.0%}. "
+             f"(`plugin/tools/stability/scale_cases.py`; {r.notes}). Image mean against the referee's, and the share "
+             f"of pixels within the same-seed tolerance of it; *matches*: which side is within "
+             f"{scale_cases.TOLERANCE:.0%}. "
              f"Ours is claimed from {lo:g} to {hi:g}; outside, Mitsuba's own surface code, which both sides run, "
              "fails (the reasons: `scale_cases.CLAIMED`).", "",
              "| scale | stock: mean | within | ours: mean | within | matches |", "|---:|---:|---:|---:|---:|---|"]
     for row in r.figures["rows"]:
-        lines.append(f"| {row['scale']:g} | {row['stock_rel']:+.2%} | {row['stock_within']:.1%} | {row['ours_rel']:+.2%} "
-                     f"| {row['ours_within']:.1%} | {row['matches']} |")
+        lines.append(f"| {row['scale']:g} | {row['stock_rel']:+.2%} | {row['stock_within']:.1%} "
+                     f"| {row['ours_rel']:+.2%} | {row['ours_within']:.1%} | {row['matches']} |")
     return lines + [""]
 
 
@@ -63,8 +64,10 @@ def markdown(results, command: str, scale: float, seconds: float, robust=()) -> 
         f"{int(sc.RAYS * scale):,} rays per ray-level case where not said otherwise, images of "
         f"{max(8, int(round(16 * scale ** 0.5)))}² pixels. Each case is also a test in "
         "`tests/tools/test_stability.py` (at scale 1).", "",
-        f"**{len(results) - len(failed)} of {len(results)} cases pass**" + (f"; failing: {', '.join(failed)}." if failed else "."), "",
-        "How to read it. *Ray level*: our closest hits (all three traversal modes on every branching, 2, 4 and 8 children per node, which must agree bit for bit) "
+        f"**{len(results) - len(failed)} of {len(results)} cases pass**"
+        + (f"; failing: {', '.join(failed)}." if failed else "."), "",
+        "How to read it. *Ray level*: our closest hits (all three traversal modes on every branching, 2, 4 and 8 "
+        "children per node, which must agree bit for bit) "
         "against Embree via Mitsuba, default and robust (`embree_use_robust_intersections`). A disagreement is a "
         "ray where one side hits and the other misses, or the two hit different triangles at different distances "
         "(rays that hit two triangles at the same distance, shared edges and coplanar faces, are ties where either "
@@ -72,12 +75,15 @@ def markdown(results, command: str, scale: float, seconds: float, robust=()) -> 
         "side names decides who is *wrong* for the exact float32 geometry and ray: ours / Embree default / Embree "
         "robust (a hit on a triangle the ray misses, a miss where a named triangle is hit, or a farther hit than a "
         "named one). Disagreements where nobody is wrong are undecidable in float64 too: the ray starts on a "
-        "triangle, lies in its plane, or passes within 1e-9 (barycentric) of an edge. *Image level*: our `layerbvh` integrator in `layer_sorted`, "
-        f"with treelets of {image_cases.LAYER_HEIGHT} levels so that the wavefront steps and the sort run (the rule checks "
+        "triangle, lies in its plane, or passes within 1e-9 (barycentric) of an edge. *Image level*: our `layerbvh` "
+        "integrator in `layer_sorted`, "
+        f"with treelets of {image_cases.LAYER_HEIGHT} levels so that the wavefront steps and the sort run (the rule "
+        "checks "
         "that they did: more than one wavefront step per query), against stock `path` on the scenes in "
         "`scenes/stability/`; disagreements are same-seed pixels differing by more than 1e-3 × max(1, |stock|) from "
         "stock with Embree in default / robust mode (≤ 1% of pixels), no NaN/Inf pixel, and a negative control: the "
-        f"same rule applied to stock against stock with one material's albedo × {image_cases.CONTROL_FACTOR:g} (the light's "
+        f"same rule applied to stock against stock with one material's albedo × {image_cases.CONTROL_FACTOR:g} "
+        "(the light's "
         "radiance at max_depth 1) must fail, so the rule can see a 2% change on that scene.", "",
         "| case | level | tried | disagreements: default | robust | wrong (exact): ours / default / robust "
         "| ours NaN/Inf | result |",
@@ -96,9 +102,10 @@ def markdown(results, command: str, scale: float, seconds: float, robust=()) -> 
         lines += ["## The command line under abuse", "",
                   "What a user or a hostile tester does, run as they would: `layerbvh` in a subprocess on small "
                   "scenes, checking the exit code, the one line on stderr, what is left on disk and, where it "
-                  "renders, the image against stock Mitsuba (`plugin/tools/stability/robustness.py`; each case is also a "
-                  "test in `tests/tools/test_robustness.py`). "
-                  f"**{len(robust) - len(failed)} of {len(robust)} pass**" + (f"; failing: {', '.join(failed)}." if failed else "."),
+                  "renders, the image against stock Mitsuba (`plugin/tools/stability/robustness.py`; each case is "
+                  "also a test in `tests/tools/test_robustness.py`). "
+                  f"**{len(robust) - len(failed)} of {len(robust)} pass**"
+                  + (f"; failing: {', '.join(failed)}." if failed else "."),
                   "", rb.markdown(list(robust))]
     return "\n".join(lines) + "\n"
 

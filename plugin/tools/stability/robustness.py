@@ -116,7 +116,8 @@ def scene_file(folder: Path, name: str, body: str, res: int = 16, spp: int = 4) 
     return path
 
 
-LIT_QUAD = """<shape type="rectangle" id="floor"><transform name="to_world"><translate z="-1"/><scale value="3"/></transform></shape>
+LIT_QUAD = """<shape type="rectangle" id="floor">
+    <transform name="to_world"><translate z="-1"/><scale value="3"/></transform></shape>
   <shape type="rectangle" id="lamp"><transform name="to_world"><translate y="0.5"/><scale value="0.4"/></transform>
     <emitter type="area"><rgb name="radiance" value="8"/></emitter></shape>"""
 
@@ -145,8 +146,8 @@ def scene_path_settings(tmp: Path) -> Outcome:
       "refused in one line naming prb_projective; with --as-path both sides render path with its max_depth, "
       "and report.json and index.html say so")
 def non_path_integrator(tmp: Path) -> Outcome:
-    scene = scene_file(tmp, "prb_projective", f"""<integrator type="prb_projective"><integer name="max_depth" value="4"/>
-  </integrator>
+    scene = scene_file(tmp, "prb_projective", f"""<integrator type="prb_projective">
+    <integer name="max_depth" value="4"/></integrator>
   {LIT_QUAD}""")
     refused = layerbvh("compare", scene, "--out", tmp / "cmp")
     ok1, line = one_line(refused, 2, "prb_projective", "--as-path")
@@ -157,7 +158,8 @@ def non_path_integrator(tmp: Path) -> Outcome:
            and rep.get("integrator", {}).get("max_depth") == 4
            and "--as-path" in (tmp / "cmp" / "index.html").read_text())
     return Outcome("non_path_integrator", ok1 and ok2,
-                   f"without --as-path {line}; with it exit {r.code}, scene_integrator {rep.get('scene_integrator')!r}, "
+                   f"without --as-path {line}; with it exit {r.code}, "
+                   f"scene_integrator {rep.get('scene_integrator')!r}, "
                    f"compared_as {rep.get('compared_as')!r}")
 
 
@@ -187,8 +189,9 @@ def ctrl_c(tmp: Path) -> Outcome:
         p.kill()
         return Outcome("ctrl_c", False, "still running after SIGINT")
     stopped_in = time.monotonic() - t0
-    lines = [ln for ln in (seen + err).replace("\r", "\n").splitlines() if ln.startswith("layerbvh:") and "%|" not in ln]
-    done = [ln for ln in (seen + err).replace("\r", "\n").splitlines() if "spp" in ln]
+    out_lines = (seen + err).replace("\r", "\n").splitlines()
+    lines = [ln for ln in out_lines if ln.startswith("layerbvh:") and "%|" not in ln]
+    done = [ln for ln in out_lines if "spp" in ln]
     # "Within one pass", counted in samples rather than seconds: the progress bar may have gone at
     # most one pass (64 spp) beyond what it showed when SIGINT was sent.
     at_signal, at_end = progress_spp(seen), progress_spp(seen + err)
@@ -348,7 +351,8 @@ def directory_as_scene(tmp: Path) -> Outcome:
 @case("bad_integrator_property", "a scene whose layerbvh integrator sets treelet_height=0",
       "refused when the scene loads, with the same rule and message as --treelet-height")
 def bad_integrator_property(tmp: Path) -> Outcome:
-    scene = scene_file(tmp, "th0", f"""<integrator type="layerbvh"><integer name="treelet_height" value="0"/></integrator>
+    scene = scene_file(tmp, "th0", f"""<integrator type="layerbvh">
+    <integer name="treelet_height" value="0"/></integrator>
   {LIT_QUAD}""")
     ok, line = one_line(layerbvh("render", scene, "-o", tmp / "x.exr"), 2, "treelet_height must be in [1, 64], got 0")
     ok2, line2 = one_line(layerbvh("render", scene, "--treelet-height", "0", "-o", tmp / "x.exr"), 2,

@@ -23,8 +23,8 @@ COMMON = ("scene", "config", "spp", "resolution", "status", "error", "triangles"
           "ran", "started", "key", "dir", "report")
 FIGURES = {
     "compare": ("verdict", "mde_image", "within_1e-3", "rmse", "rel_mse", "flip_mean", "delta_e2000_mean",
-                "delta_e2000_p95", "max_abs", "mean_abs", "stock_s", "control_s", "ours_s", "ours_over_stock", "traversal_s", "loop_s",
-                "build_s", "compile_s", "calibration_s"),
+                "delta_e2000_p95", "max_abs", "mean_abs", "stock_s", "control_s", "ours_s", "ours_over_stock",
+                "traversal_s", "loop_s", "build_s", "compile_s", "calibration_s"),
     "converge": ("spp_reached", "seconds", "rel_mse", "flip", "delta_e2000", "slope_rel_mse_vs_spp",
                  "slope_rel_mse_vs_seconds", "rel_mse_at_equal_time", "error_vs_base", "seconds_to_equal_error",
                  "time_vs_base", "build_s", "compile_s", "calibration_s", "reference_s"),
