@@ -64,18 +64,15 @@ def api_reference() -> str:
 
 
 def mutation_table() -> str:
-    """The mutation check's table (scripts/mutation_check.py MUTATIONS): each realistic bug, where
-    it is made and the tests that must catch it."""
-    import importlib.util  # (here: the script is loaded by path, not as a package module)
-    spec = importlib.util.spec_from_file_location("mutation_check", ROOT / "scripts" / "mutation_check.py")
-    mc = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = mc  # (its dataclasses look their module up there)
-    spec.loader.exec_module(mc)
-    out = ["# The mutation check", "", f"{len(mc.MUTATIONS)} realistic bugs, each made in a copy of the repository "
+    """The mutation check's table (scripts/mutations/, which scripts/mutation_check.py runs): each
+    realistic bug, where it is made and the tests that must catch it."""
+    sys.path.insert(0, str(ROOT / "scripts"))  # (the table is a folder of scripts/, not an installed package)
+    from mutations import MUTATIONS  # local: only the site's mutation page reads it
+    out = ["# The mutation check", "", f"{len(MUTATIONS)} realistic bugs, each made in a copy of the repository "
            "by `bash scripts/mutation_check.sh` (one at a time; `--only NAME`), and the tests that must catch it. "
-           "Generated from `scripts/mutation_check.py` when the site is built; see [testing](testing.md) for runs.",
+           "Generated from `scripts/mutations/` when the site is built; see [testing](testing.md) for runs.",
            "", "| mutation | the bug | file | caught by |", "|---|---|---|---|"]
-    for m in mc.MUTATIONS:
+    for m in MUTATIONS:
         tests = "<br>".join(f"`{t.removeprefix('tests/')}`" for t in m.tests)
         out.append(f"| `{m.name}` | {m.what.replace('|', chr(92) + '|')} | `{m.path}` | {tests} |")
     return "\n".join(out) + "\n"

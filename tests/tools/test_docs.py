@@ -50,6 +50,34 @@ def test_every_relative_link_resolves():
     assert broken_links() == []
 
 
+CODE_TREES = ("layerbvh", "plugin", "scripts", "tests", "docs", "scenes")
+PATHISH = re.compile(r"`([\w./*-]+(?:/|\.(?:py|md|sh|toml|json|xml|yml)))`")
+
+
+def missing_paths(page: Path, root: Path = ROOT) -> list[str]:
+    """The `code` spans of a page that name a file or folder (a slash or a file suffix) that is not
+    in the repository: from its top, from a code tree (`tools/x.py` is plugin/tools/x.py) or, for a
+    bare file name, anywhere in one."""
+    bad = []
+    for name in sorted(set(PATHISH.findall(page.read_text()))):
+        bases = [root, *(root / t for t in CODE_TREES)]
+        if any(list(b.glob(name.rstrip("/"))) for b in bases):
+            continue
+        if "/" not in name and any(next((root / t).rglob(name), None) for t in CODE_TREES):
+            continue
+        bad.append(name)
+    return bad
+
+
+def test_the_repository_map_names_what_is_there(tmp_path):
+    """docs/layout.md (the map of the repository) names only files and folders that exist; the
+    check can fail: a folder that was renamed (tests/mitsuba/, now tests/runtime/) is named."""
+    assert missing_paths(ROOT / "docs" / "layout.md") == []
+    page = tmp_path / "layout.md"
+    page.write_text("tests in `engine/`, `mitsuba/` and `tools/`; the table in `scripts/mutations/`\n")
+    assert missing_paths(page) == ["mitsuba/"]
+
+
 def test_a_broken_link_is_found(tmp_path):
     """The check can fail: a missing file and a missing heading are both named, a good one not."""
     page = (tmp_path / "page.md").resolve()
@@ -89,8 +117,8 @@ def test_a_broken_site_link_fails_the_build(tmp_path):
     copy = tmp_path / "repo"
     (copy / "scripts").mkdir(parents=True)
     shutil.copy(ROOT / "mkdocs.yml", copy)
-    for script in ("mkdocs_hooks.py", "mutation_check.py"):  # (the hooks and the table they read)
-        shutil.copy(ROOT / "scripts" / script, copy / "scripts")
+    shutil.copy(ROOT / "scripts" / "mkdocs_hooks.py", copy / "scripts")  # (the hooks and the table they read)
+    shutil.copytree(ROOT / "scripts" / "mutations", copy / "scripts" / "mutations")
     for name in ("README.md", "BENCHMARKS.md", "PERFORMANCE.md", "STABILITY.md"):
         shutil.copy(ROOT / name, copy)
     shutil.copytree(ROOT / "docs", copy / "docs")
