@@ -15,11 +15,11 @@ from . import meshes  # noqa: F401  (the engine's test and benchmark inputs, num
 from .sah import MAX_DEPTH
 from .state import MISS
 from .stats import BVHStats, TraceStats
-from .wavefront import MODES
+from .wavefront import MODES, TAIL_STEPS
 
 __all__ = ["AUTO", "AutoPolicy", "choice_key", "BATCH_RAYS", "TRACE_MODES", "build", "build_instanced", "Group",
            "Instance", "LayerBVH", "Hits", "Occlusion", "BVHStats", "TraceStats",
-           "LayerLayout", "check_layout", "MODES", "MISS", "PARAM_RANGES", "check_mesh", "check_param",
+           "LayerLayout", "check_layout", "MODES", "TAIL_STEPS", "MISS", "PARAM_RANGES", "check_mesh", "check_param",
            "DEFAULT_TREELET_HEIGHT", "DEFAULT_LEAF_SIZE", "DEFAULT_BRANCHING", "BRANCHINGS", "default_leaf_size",
            "MAX_DEPTH", "cpu_model", "from_numpy", "llvm_vector_width", "set_llvm_vector_width", "LLVM_ISAS",
            "llvm_isa",

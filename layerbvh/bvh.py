@@ -17,7 +17,7 @@ from .relayout import load_builder_kernels, to_layer_layout
 from .sah import BinaryBVH, build_binned_sah, triangle_bounds
 from .state import MISS, Results
 from .stats import BVHStats, TraceStats
-from .wavefront import MODES, TAIL_FRACTION, TAIL_RAYS, trace as _trace, trace_inline
+from .wavefront import MODES, TAIL_FRACTION, TAIL_RAYS, TAIL_STEPS, trace as _trace, trace_inline
 
 # Rays traced per batch. The layer modes' work memory is about batch x ((K - 1) x tree depth x 8 B
 # of entry stack + 2 x 36 B of ray state + 32 B ray record + 40 B in/out); 1M rays, binary depth 40
@@ -59,8 +59,8 @@ class LayerBVH:
     `branching` is the number of children per inner node: 2 (the binary BVH) or 4, 8 (collapsed
     from it, layerbvh.collapse); `treelet_height` counts levels of that tree.
     `batch_rays` bounds how many rays one kernel pass holds (the work memory); `tail_rays`: when
-    this few rays (or `tail_fraction` of a batch) are left in the layer modes, one per-ray kernel
-    finishes them; `auto_policy`
+    this few rays (or `tail_fraction` of a batch) are left in the layer modes, or after `tail_steps`
+    wavefront steps, one per-ray kernel finishes them (wavefront.takes_tail); `auto_policy`
     decides mode="auto" (default: auto.AutoPolicy's rules for the backend).
 
     Given `groups` and `instances` (layerbvh.Group, layerbvh.Instance) in place of vertices and
@@ -69,7 +69,8 @@ class LayerBVH:
     def __init__(self, vertices, faces, treelet_height=DEFAULT_TREELET_HEIGHT, leaf_size=None, backend=None,
                  batch_rays=BATCH_RAYS, tail_rays=TAIL_RAYS, auto_policy: AutoPolicy | None = None,
                  tail_fraction: float = TAIL_FRACTION, groups: list[Group] | None = None,
-                 instances: list[Instance] | None = None, branching: int = DEFAULT_BRANCHING):
+                 instances: list[Instance] | None = None, branching: int = DEFAULT_BRANCHING,
+                 tail_steps: int = TAIL_STEPS):
         treelet_height = check_param("treelet_height", treelet_height)
         self.branching = branching = check_param("branching", branching)
         self.batch_rays = check_param("batch_rays", batch_rays)
@@ -77,6 +78,7 @@ class LayerBVH:
         if not 0.0 <= tail_fraction <= 1.0:
             raise ValueError(f"tail_fraction must be in [0, 1], got {tail_fraction}")
         self.tail_fraction = float(tail_fraction)
+        self.tail_steps = check_param("tail_steps", tail_steps)
         leaf_size = check_param("leaf_size", default_leaf_size(branching) if leaf_size is None else leaf_size)
         self.backend = backend or be.default_backend()
         self.m = be.module(self.backend)
@@ -140,7 +142,7 @@ class LayerBVH:
     # -- tracing ---------------------------------------------------------------------------------
     def _trace_batch(self, batch: RayBatch, mode: str, any_hit: bool, count_work: bool):
         return _trace(self.m, self.device, batch, mode=mode, any_hit=any_hit, tail_rays=self.tail_rays,
-                      count_work=count_work, tail_fraction=self.tail_fraction)
+                      count_work=count_work, tail_fraction=self.tail_fraction, tail_steps=self.tail_steps)
 
     def _run(self, origins, directions, tmax, active, mode, any_hit, count_work, hint):
         if mode not in TRACE_MODES:
@@ -230,20 +232,22 @@ class LayerBVH:
 def build(vertices, faces, treelet_height: int = DEFAULT_TREELET_HEIGHT, leaf_size: int | None = None,
           backend: str | None = None,
           batch_rays: int = BATCH_RAYS, tail_rays: int = TAIL_RAYS, auto_policy: AutoPolicy | None = None,
-          tail_fraction: float = TAIL_FRACTION, branching: int = DEFAULT_BRANCHING) -> LayerBVH:
+          tail_fraction: float = TAIL_FRACTION, branching: int = DEFAULT_BRANCHING,
+          tail_steps: int = TAIL_STEPS) -> LayerBVH:
     """Build a Layer BVH over a triangle mesh: vertices (V, 3) float, faces (F, 3) int.
     `branching` (2, 4, 8): children per inner node; `leaf_size`: triangles per leaf at most
     (default: inputs.default_leaf_size of the branching); `batch_rays` bounds how many rays one trace
     call processes at once (peak memory)."""
     return LayerBVH(vertices, faces, treelet_height=treelet_height, leaf_size=leaf_size, backend=backend,
                     batch_rays=batch_rays, tail_rays=tail_rays, auto_policy=auto_policy, tail_fraction=tail_fraction,
-                    branching=branching)
+                    branching=branching, tail_steps=tail_steps)
 
 
 def build_instanced(groups: list[Group], instances: list[Instance], treelet_height: int = DEFAULT_TREELET_HEIGHT,
                     leaf_size: int | None = None, backend: str | None = None, batch_rays: int = BATCH_RAYS,
                     tail_rays: int = TAIL_RAYS, auto_policy: AutoPolicy | None = None,
-                    tail_fraction: float = TAIL_FRACTION, branching: int = DEFAULT_BRANCHING) -> LayerBVH:
+                    tail_fraction: float = TAIL_FRACTION, branching: int = DEFAULT_BRANCHING,
+                    tail_steps: int = TAIL_STEPS) -> LayerBVH:
     """Build a two-level Layer BVH: each group's mesh (layerbvh.Group) gets its own BVH, stored
     once however many instances (layerbvh.Instance: group index, object -> world affine map)
     place it, under a top-level BVH over the instances' world boxes (layerbvh.instances).
@@ -252,4 +256,4 @@ def build_instanced(groups: list[Group], instances: list[Instance], treelet_heig
     index, then the lower primitive id, in every mode."""
     return LayerBVH(None, None, treelet_height=treelet_height, leaf_size=leaf_size, backend=backend,
                     batch_rays=batch_rays, tail_rays=tail_rays, auto_policy=auto_policy, tail_fraction=tail_fraction,
-                    groups=groups, instances=instances, branching=branching)
+                    groups=groups, instances=instances, branching=branching, tail_steps=tail_steps)

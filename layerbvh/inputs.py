@@ -73,6 +73,7 @@ PARAM_RANGES = {
     "leaf_size": (1, 16),        # triangles per leaf at most (a leaf link holds counts up to 31)
     "batch_rays": (1, 1 << 31),  # rays per traced batch (work memory)
     "tail_rays": (0, 1 << 31),   # rays left when the layer modes finish with one per-ray kernel
+    "tail_steps": (1, 1 << 16),  # wavefront steps after which they do, however many rays are left
 }
 
 

@@ -20,7 +20,7 @@ from .state import COMPACT_RECORD_WORDS, MISS, StateRecords
 from .steptraffic import limits, result_traffic, sort_traffic
 from .tracecheck import TraceCheck, check_trace, same_as
 from .walk import SORT_NETWORKS
-from .wavefront import MODES, TAIL_FRACTION, TAIL_RAYS, stack_rows, takes_tail
+from .wavefront import MODES, TAIL_FRACTION, TAIL_RAYS, TAIL_STEPS, stack_rows, takes_tail
 
 RAY_RECORD_BYTES = 32       # state.RayRecords: one 32-byte record per ray (the layer modes)
 PER_RAY_LOADS = 7           # per_ray reads o, d (six arrays) and tmax by slot: 4 bytes each
@@ -57,6 +57,7 @@ class ReplayResult:
     loads: dict = None              # per ray and load kind (memtrace.LOAD_KINDS): the loads fed to the cache model
     write_misses: tuple = ()        # per level: the replay's stores (memsites.STORE_SITES) that missed it
     write_back_bytes: int = 0       # dirty lines the last level wrote back into DRAM, in bytes
+    tail_steps: int = TAIL_STEPS    # the step cap of the tail rule replayed (wavefront.takes_tail)
 
 
 def _regions(sizes: dict) -> dict:
@@ -76,7 +77,8 @@ def valid_rays(o: np.ndarray, d: np.ndarray, tmax: np.ndarray) -> np.ndarray:
 
 
 def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, preset: Preset,
-           tail_rays: int = TAIL_RAYS, tail_fraction: float = TAIL_FRACTION) -> ReplayResult:
+           tail_rays: int = TAIL_RAYS, tail_fraction: float = TAIL_FRACTION,
+           tail_steps: int = TAIL_STEPS) -> ReplayResult:
     """Trace the rays (numpy (N, 3), (N, 3), (N,)) in `mode` as wavefront.trace schedules them,
     with `warp` lanes per warp (packet) on `preset`'s units and caches."""
     if mode not in MODES:
@@ -197,7 +199,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
         finished = lay.treelet_count
         n0 = n_active = n
         while n_active > 0:
-            if takes_tail(n_active, n0, kernels, tail_rays, tail_fraction):
+            if takes_tail(n_active, n0, kernels, tail_rays, tail_fraction, tail_steps):
                 launch(order, False, True, cap_g)
                 kernels += 1
                 break
@@ -244,7 +246,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
                         loads={kind: np.where(valid, c, 0) for kind, c in per_ray_loads.items()},
                         branching=lay.branching, tally=tally,
                         levels_hit=levels_hit, warp_iterations=int(lanes[0]), lane_iterations=int(lanes[1]),
-                        kernels=kernels, sort_bytes=sort_bytes, ray_steps=ray_steps,
+                        kernels=kernels, sort_bytes=sort_bytes, ray_steps=ray_steps, tail_steps=tail_steps,
                         pushed=int(lanes[2]), carried=carried, seconds=time.perf_counter() - t0,
                         result_bytes=result_traffic(not layer, n, int(work["hits_written"].sum())),
                         write_misses=tuple(int(x) for x in counts[:-1, C_WRITE_MISSES]),
@@ -289,6 +291,7 @@ class LocalityRow:
     branching: int = 2                  # children per node of the replayed tree
     result_bytes_per_ray: float = 0.0   # hits written to the results (steptraffic.result_traffic)
     steps_per_ray: float = 0.0          # kernel calls a ray took part in (wavefront steps and the tail)
+    tail_steps: int = TAIL_STEPS        # wavefront steps after which the tail finishes the rays left
     sort_bytes_per_ray_step: float = 0.0  # sort_bytes over the rays of every wavefront step
     pushed_per_ray_step: float = 0.0    # entries pushed and written back, per ray and wavefront step
     carried_per_ray_step: float = 0.0   # the share of a step's rays that go on (write a state record)
@@ -349,7 +352,7 @@ def row(kind: str, rep: ReplayResult, treelet_height: int, sampled_from: int | N
         sort_bytes_per_ray=rep.sort_bytes / n,
         total_dram_bytes_per_ray=dram(traversal) + (rep.sort_bytes + rep.result_bytes) / n,
         branching=rep.branching, result_bytes_per_ray=rep.result_bytes / n,
-        steps_per_ray=float(rep.work["steps"].sum()) / n,
+        steps_per_ray=float(rep.work["steps"].sum()) / n, tail_steps=rep.tail_steps,
         sort_bytes_per_ray_step=rep.sort_bytes / rep.ray_steps if rep.ray_steps else 0.0,
         pushed_per_ray_step=rep.pushed / rep.ray_steps if rep.ray_steps else 0.0,
         carried_per_ray_step=rep.carried / rep.ray_steps if rep.ray_steps else 0.0,
@@ -383,6 +386,7 @@ class LocalitySettings:
     threads: int | None = None      # replays run at once (numba releases the GIL); None: the CPU count
     segments: tuple | None = None   # transaction sizes in bytes (memmodel.with_segment); None: each preset's own
     branching: int = DEFAULT_BRANCHING  # children per node of the tree replayed (a render's default)
+    tail_steps: int = TAIL_STEPS    # the layer modes' step cap: after this many steps the tail finishes the rays
 
 
 @dataclass
@@ -429,14 +433,15 @@ def measure(vertices, faces, ray_sets: list[RaySet], settings: LocalitySettings,
     for h in settings.treelet_heights:
         most = max([len(s[1]) for s in sets] + [1])
         bvh = build(vertices, faces, treelet_height=h, leaf_size=leaf_size, backend=backend, batch_rays=most,
-                    branching=settings.branching)
+                    branching=settings.branching, tail_steps=settings.tail_steps)
         bvh_stats[h] = asdict(bvh.stats)
         for rs, o, d, tmax, before in sets:
             configs = [(mode, pre, warp) for mode in settings.modes for pre, warp in widths]
 
             def one(config, rs=rs, o=o, d=d, tmax=tmax):
                 mode, pre, warp = config
-                return replay(bvh.layout, o, d, tmax, mode, rs.any_hit, warp, pre, bvh.tail_rays, bvh.tail_fraction)
+                return replay(bvh.layout, o, d, tmax, mode, rs.any_hit, warp, pre, bvh.tail_rays, bvh.tail_fraction,
+                              bvh.tail_steps)
             with ThreadPoolExecutor(max_workers=settings.threads or os.cpu_count() or 1) as pool:
                 reps = []
                 for config, rep in zip(configs, pool.map(one, configs)):

@@ -21,12 +21,11 @@ TAIL_RAYS = 2048
 # ... and so does it once this share of a batch is left: the first steps, with many rays per
 # treelet, are where sorting pays (PERFORMANCE.md entry 20).
 TAIL_FRACTION = 0.25
-# ... and so does it after this many steps, however many rays are left. Each step costs host time
-# (tracing the step kernel in Python, then a sync) whatever its size: ~15 ms when this cap was
-# chosen, ~2.5 ms since the walk's loop is traced once (PERFORMANCE.md entry 58); a batch of typical
-# rays takes 4-8 steps (1M incoherent rays on the bunny and on 600k triangles), but a tree whose
-# boxes all overlap (long thin triangles turned at random: the stability suite's slivers) took
-# ~430 steps per batch, seconds of host time for 10,000 rays. A step cap bounds that.
+# ... and so does it after this many steps, however many rays are left (a LayerBVH's `tail_steps`).
+# Each step costs host time (tracing the step kernel, a sync) whatever its size, and a tree whose
+# boxes all overlap (long thin triangles turned at random: the stability suite's slivers) takes
+# hundreds of steps per batch (PERFORMANCE.md entry 58). The tail walks the rays in the order the
+# last step sorted them, so it keeps that sort's coherence.
 TAIL_STEPS = 32
 # Where a trace's entry stacks are at most this many bytes, its step and tail kernels are frozen
 # (dr.freeze): recorded once per tree and batch shape, then replayed without tracing the walk in
@@ -44,13 +43,14 @@ FROZEN_STACK_BYTES = 16 << 20
 FROZEN_BACKENDS = ("llvm",) if os.environ.get("LAYERBVH_FROZEN_STEPS") == "1" else ()
 
 
-def takes_tail(n_active: int, n0: int, steps: int, tail_rays: int, tail_fraction: float) -> bool:
+def takes_tail(n_active: int, n0: int, steps: int, tail_rays: int, tail_fraction: float,
+               tail_steps: int = TAIL_STEPS) -> bool:
     """Whether the rays still active after `steps` wavefront steps (of n0) are finished by one
     per-ray kernel (the tail) instead of more steps: the rule `trace` runs and the locality replay
-    follows. tail_rays = 0 and tail_fraction = 0 turn the tail off, the step cap with it."""
+    follows. tail_rays = 0 and tail_fraction = 0 turn the tail off, the step cap (tail_steps) with it."""
     if steps == 0 or (tail_rays == 0 and tail_fraction == 0):
         return False
-    return n_active <= max(tail_rays, int(tail_fraction * n0)) or steps >= TAIL_STEPS
+    return n_active <= max(tail_rays, int(tail_fraction * n0)) or steps >= tail_steps
 
 
 def stack_rows(lay: DeviceLayout) -> int:
@@ -77,7 +77,7 @@ def _sync():
 
 
 def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, tail_rays: int = TAIL_RAYS,
-          count_work: bool = True, tail_fraction: float = TAIL_FRACTION):
+          count_work: bool = True, tail_fraction: float = TAIL_FRACTION, tail_steps: int = TAIL_STEPS):
     """Closest hit (or any hit) of every ray of `batch`; returns (Results, TraceStats)."""
     n = batch.n
     stats = TraceStats(mode=mode, rays=n)
@@ -147,7 +147,7 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
     while n_active > 0:
         stats.active_per_step.append(n_active)
         ta = _sync()
-        if takes_tail(n_active, n0, stats.steps, tail_rays, tail_fraction):
+        if takes_tail(n_active, n0, stats.steps, tail_rays, tail_fraction, tail_steps):
             # Same nearest-first order as the steps, so the same hits and work counts.
             if frozen:
                 with collector_held():

@@ -46,3 +46,19 @@ def test_the_step_cap_hands_a_long_batch_to_the_tail():
     for got in (long, h):
         assert (got.prim == ref.prim).all() and (got.t == ref.t).all() and (got.u == ref.u).all()
         assert got.stats.inner_nodes == ref.stats.inner_nodes and got.stats.triangles == ref.stats.triangles
+
+
+@pytest.mark.parametrize("tail_steps", [1, 2])
+def test_a_step_cap_of_k_takes_k_sorted_steps_then_the_tail(procedural, tail_steps):
+    """tail_steps = k: k wavefront steps, then the per-ray tail finishes every ray left (in the
+    order the last step sorted them), with per_ray's hits and work, closest and any hit."""
+    v, f = procedural
+    o, d = rays(v, "incoherent")
+    bvh = layerbvh.build(v, f, treelet_height=4, tail_steps=tail_steps)
+    ref = bvh.trace(o, d, mode="per_ray")
+    h = bvh.trace(o, d, mode="layer_sorted")
+    assert h.stats.steps == tail_steps + 1 and h.stats.tail_rays == h.stats.active_per_step[-1] > 0.25 * len(o)
+    assert (h.prim == ref.prim).all() and (h.t == ref.t).all() and (h.u == ref.u).all()
+    assert h.stats.inner_nodes == ref.stats.inner_nodes and h.stats.triangles == ref.stats.triangles
+    occ = bvh.occluded(o, d, mode="layer_sorted").occluded
+    assert (np.asarray(occ) == (np.asarray(ref.prim) != layerbvh.MISS)).all()

@@ -24,6 +24,20 @@ def _rays(v, kind, n=N_RAYS, seed=5):
     return o, d, np.full(n, np.inf, np.float32)
 
 
+def test_the_replay_follows_the_kernels_step_cap(procedural):
+    """tail_steps = 1 (one sorted step, then the tail): the replay takes the kernel's schedule, so
+    every ray's hit, work counts (its two kernel calls included) and loads equal the kernel's."""
+    v, f = procedural
+    o, d, tmax = _rays(v, "incoherent")
+    bvh = layerbvh.build(v, f, branching=4, treelet_height=4, batch_rays=len(o), tail_steps=1)
+    rep = L.replay(bvh.layout, o, d, tmax, "layer_sorted", False, 32, preset("gtx965m"), bvh.tail_rays,
+                   bvh.tail_fraction, bvh.tail_steps)
+    chk = L.check_trace(bvh, o, d, tmax, False, rep)
+    assert chk.exact, (chk.hit_mismatches, chk.work_mismatches, chk.load_mismatches)
+    assert rep.kernels == 2 and rep.tail_steps == 1 and rep.work["steps"].max() == 2
+    assert L.row("incoherent", rep, 4).tail_steps == 1
+
+
 @pytest.mark.parametrize("mesh_name", ["bunny", "procedural"])
 @pytest.mark.parametrize("kind", ["camera", "incoherent"])
 @pytest.mark.parametrize("any_hit", [False, True], ids=["closest", "any"])
@@ -251,8 +265,8 @@ def test_locality_command(tmp_path):
     trace checked, the plot and the summary written; bad options get one line."""
     out = tmp_path / "loc"
     r = _cli("locality", str(SCENES / "cbox.xml"), "--res", "24", "24", "--rays", "camera,shadow",
-             "--preset", "h200,cpu", "--warp", "8,32", "--treelet-heights", "2", "--out", str(out), "--no-progress",
-             cwd=tmp_path)
+             "--preset", "h200,cpu", "--warp", "8,32", "--treelet-heights", "2", "--tail-steps", "1", "--out", str(out),
+             "--no-progress", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     doc = json.loads((out / "locality.json").read_text())
     rows = doc["results"]
@@ -260,6 +274,9 @@ def test_locality_command(tmp_path):
     # With no tree options it models the tree a render gets (issue 40): the default branching.
     assert doc["branching"] == layerbvh.DEFAULT_BRANCHING and {r["branching"] for r in rows} == {doc["branching"]}
     assert doc["leaf_size"] == layerbvh.default_leaf_size(layerbvh.DEFAULT_BRANCHING)
+    # --tail-steps reaches the build the kernel check traces and the replay (one step, then the tail).
+    assert doc["tail_steps"] == 1 and {r["tail_steps"] for r in rows} == {1}
+    assert max(r["kernels"] for r in rows) <= 2
     need = ("kind", "mode", "warp", "preset", "rays", "inner_per_ray", "tris_per_ray", "transactions_per_ray",
             "simd_efficiency", "l1_hit_rate", "l2_hit_rate", "l2_bytes_per_ray", "dram_bytes_per_ray",
             "sort_bytes_per_ray")

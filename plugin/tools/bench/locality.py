@@ -15,6 +15,7 @@ from tqdm import tqdm
 import layerbvh
 from layerbvh import (
     PRESETS,
+    TAIL_STEPS,
     CacheLevel,
     LocalityRow,
     LocalitySettings,
@@ -62,6 +63,7 @@ class LocalityRequest:
     check: bool = True
     segments: tuple | None = None  # None: each preset's own transaction size
     branching: int = layerbvh.DEFAULT_BRANCHING  # the tree a render of the scene gets, unless asked
+    tail_steps: int = TAIL_STEPS  # the layer modes' step cap (wavefront.takes_tail), unless asked
 
 
 def parse_list(text: str, what: str, choices=None, kind=str) -> tuple:
@@ -105,7 +107,9 @@ def request_from_args(args) -> LocalityRequest:
                            layerbvh.check_param("leaf_size", args.leaf_size),
                            sample=args.sample, cap=args.cap, check=not args.no_check, segments=segments,
                            branching=layerbvh.check_param("branching", getattr(args, "branching", None) or
-                                                          layerbvh.DEFAULT_BRANCHING))
+                                                          layerbvh.DEFAULT_BRANCHING),
+                           tail_steps=layerbvh.check_param("tail_steps", getattr(args, "tail_steps", None) or
+                                                           TAIL_STEPS))
 
 
 def measure_scene(mi, req: LocalityRequest, progress: bool = True) -> dict:
@@ -128,7 +132,7 @@ def measure_scene(mi, req: LocalityRequest, progress: bool = True) -> dict:
                          f"{res[0]}x{res[1]}, {req.spp} spp")
     settings = LocalitySettings(modes=req.modes, warps=req.warps, presets=req.presets,
                                 treelet_heights=req.treelet_heights, sample=req.sample, seed=req.seed, check=req.check,
-                                segments=req.segments, branching=req.branching)
+                                segments=req.segments, branching=req.branching, tail_steps=req.tail_steps)
     per_preset = sum(len(req.warps or (named_preset(p).warp,)) for p in req.presets) * len(req.segments or (None,))
     total = per_preset * len(req.modes) * len(req.treelet_heights) * len(sets)
     with tqdm(total=total, desc="locality", unit="replay", disable=not progress, file=sys.stderr) as bar:
@@ -139,7 +143,7 @@ def measure_scene(mi, req: LocalityRequest, progress: bool = True) -> dict:
     doc = run.as_dict()
     doc.update({
         "scene": str(req.scene), "resolution": list(res), "spp": req.spp, "seed": req.seed,
-        "triangles": int(len(f)), "branching": req.branching,
+        "triangles": int(len(f)), "branching": req.branching, "tail_steps": req.tail_steps,
         "leaf_size": layerbvh.default_leaf_size(req.branching) if req.leaf_size is None else req.leaf_size,
         "record_s": record_s,
         "kinds": {k: {"recorded": int(len(rays[k][0])), "traced": meta["kinds"][k]["traced"]}
@@ -271,7 +275,8 @@ def benchmarks_section(doc: dict, fig_rel: str) -> str:
         exact = all(c["exact"] for c in doc["checks"] if c.get("scene", scene) == scene)
         parts += [f"### {scene} ({info['triangles']:,} triangles)", "",
                   f"Rays recorded at {info['resolution'][0]}x{info['resolution'][1]}, {info['spp']} spp: {kinds}"
-                  + (f", each sampled to at most {info['sampled']:,}" if info.get("sampled") else "") + ". Trace "
+                  + (f", each sampled to at most {info['sampled']:,}" if info.get("sampled") else "")
+                  + f"; the layer modes' tail after {info.get('tail_steps', TAIL_STEPS)} steps at most. Trace "
                   + ("checked against the kernel: every ray's hit, work counts and loads of each kind equal."
                      if exact else "check FAILED on some rays: see the run's summary.md."), ""]
         checked = model_checked.notes({r.preset: r.preset_params.get("kind", "gpu") for r in rows})
@@ -479,6 +484,8 @@ def add_parser(sub) -> None:
     lp.add_argument("--leaf-size", type=int, help="triangles per BVH leaf at most (default: 4 binary, 2 wide)")
     lp.add_argument("--sample", type=int, help="replay at most N rays per kind, drawn uniformly (default: all)")
     lp.add_argument("--cap", type=int, default=DEFAULT_CAP, help="rays recorded per kind at most (default %(default)s)")
+    lp.add_argument("--tail-steps", type=int, help="wavefront steps after which the layer modes finish the rays "
+                    f"left per ray, in the order the last step sorted them (default {TAIL_STEPS})")
     lp.add_argument("--no-check", action="store_true", help="skip comparing each mode's trace with the kernel")
     lp.add_argument("--variant", default="llvm_ad_rgb",
                     help="Mitsuba variant: any llvm_* or cuda_* (default %(default)s)")
