@@ -8,7 +8,8 @@ from .collector import collector_held
 from .bvh import BATCH_RAYS, TRACE_MODES, Hits, LayerBVH, Occlusion, build, build_instanced
 from .instances import Group, Instance
 from .layout import BRANCHINGS, LayerLayout, check_layout
-from .locality import LocalityRow, LocalitySettings, RaySet, measure, replay
+from .locality import (LocalityRow, LocalitySettings, RaySet, check_trace, limits as step_limits, measure, replay,
+                       replay_tree, row as locality_row, sample_rays)
 from .locality_verdict import at_headline, headline_config, preset_verdict
 from .memmodel import PRESETS, CacheLevel, Preset, preset
 from . import meshes  # noqa: F401  (the engine's test and benchmark inputs, numpy only)
@@ -26,7 +27,7 @@ __all__ = ["AUTO", "AutoPolicy", "choice_key", "BATCH_RAYS", "TRACE_MODES", "bui
            "set_llvm_isa", "collector_held",
            # the locality model
            "LocalityRow", "LocalitySettings", "RaySet", "at_headline", "headline_config", "measure", "preset_verdict",
-           "replay",
+           "replay", "replay_tree", "check_trace", "locality_row", "step_limits", "sample_rays",
            "PRESETS", "CacheLevel", "Preset", "preset"]
 __version__ = "0.1.0"
 

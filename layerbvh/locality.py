@@ -291,7 +291,9 @@ class LocalityRow:
     branching: int = 2                  # children per node of the replayed tree
     result_bytes_per_ray: float = 0.0   # hits written to the results (steptraffic.result_traffic)
     steps_per_ray: float = 0.0          # kernel calls a ray took part in (wavefront steps and the tail)
-    tail_steps: int = TAIL_STEPS        # wavefront steps after which the tail finishes the rays left
+    # wavefront steps after which the tail finishes the rays left; rows of documents written before
+    # it was recorded (PERFORMANCE.md entry 61) were replayed with the cap of then, 32
+    tail_steps: int = 32
     sort_bytes_per_ray_step: float = 0.0  # sort_bytes over the rays of every wavefront step
     pushed_per_ray_step: float = 0.0    # entries pushed and written back, per ray and wavefront step
     carried_per_ray_step: float = 0.0   # the share of a step's rays that go on (write a state record)
@@ -308,6 +310,13 @@ class LocalityRow:
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+
+def replay_tree(bvh, o, d, tmax, mode: str, any_hit: bool, warp: int, preset: Preset) -> ReplayResult:
+    """`replay` over a LayerBVH's layout with its own tail rule (tail_rays, tail_fraction,
+    tail_steps): the schedule its kernels run."""
+    return replay(bvh.layout, o, d, tmax, mode, any_hit, warp, preset, bvh.tail_rays, bvh.tail_fraction,
+                  bvh.tail_steps)
 
 
 def row(kind: str, rep: ReplayResult, treelet_height: int, sampled_from: int | None = None,

@@ -22,11 +22,13 @@ TAIL_RAYS = 2048
 # treelet, are where sorting pays (PERFORMANCE.md entry 20).
 TAIL_FRACTION = 0.25
 # ... and so does it after this many steps, however many rays are left (a LayerBVH's `tail_steps`).
-# Each step costs host time (tracing the step kernel, a sync) whatever its size, and a tree whose
-# boxes all overlap (long thin triangles turned at random: the stability suite's slivers) takes
-# hundreds of steps per batch (PERFORMANCE.md entry 58). The tail walks the rays in the order the
-# last step sorted them, so it keeps that sort's coherence.
-TAIL_STEPS = 32
+# The tail walks the rays in the order the last step sorted them (by the treelet each enters next),
+# so it keeps that sort's coherence without a step's per-ray reads and writes, its sort and its host
+# time; and a tree whose boxes all overlap (the stability suite's turned slivers) cannot take
+# hundreds of steps. One step: on every ray set of scripts/tail_cutoff.py (docs/bench/tail_cutoff.json,
+# PERFORMANCE.md entry 61) the least total DRAM bytes in the model of the paper's GPU (gtx965m,
+# W = 32) and the fastest layer_sorted on the CPU. A larger k keeps the rays in sorted steps longer.
+TAIL_STEPS = 1
 # Where a trace's entry stacks are at most this many bytes, its step and tail kernels are frozen
 # (dr.freeze): recorded once per tree and batch shape, then replayed without tracing the walk in
 # Python again (PERFORMANCE.md entry 54: 47 ms -> 2 ms per 10-step trace of 512 rays). A frozen

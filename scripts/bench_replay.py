@@ -38,7 +38,7 @@ def main() -> int:
         for mode in ("per_ray", "layer_sorted"):
             def run(k):
                 return locality.replay(bvh.layout, o[:k], d[:k], tmax[:k], mode, False, pre.warp, pre, bvh.tail_rays,
-                                       bvh.tail_fraction)
+                                       bvh.tail_fraction, bvh.tail_steps)
             run(500)  # (numba's compile or cache load)
             times = []
             for _ in range(3):

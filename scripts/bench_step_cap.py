@@ -1,5 +1,5 @@
-"""The wavefront tail's step cap (wavefront.TAIL_STEPS): steps and time of layer_sorted with the cap
-and without it, side by side in one run.
+"""The wavefront tail's step cap (a LayerBVH's tail_steps, default wavefront.TAIL_STEPS): steps and time
+of layer_sorted with the cap and without it, side by side in one run (scripts/tail_cutoff.py compares caps).
 
 Rows: turned slivers (meshes.turned_slivers: every ray walks most of the tree, hundreds of steps)
 and incoherent rays on the bunny and on 600k procedural triangles (typical batches: the cap
@@ -49,12 +49,9 @@ def main() -> None:
     for name, v, f, o, d in rows:
         bvh = layerbvh.build(v, f)
         capped, t_capped = timed(bvh, o, d, a.runs)
-        real = wavefront.TAIL_STEPS
-        wavefront.TAIL_STEPS = 1 << 30  # (the cap off; takes_tail reads it at each call)
-        try:
-            uncapped, t_uncapped = timed(bvh, o, d, a.runs)
-        finally:
-            wavefront.TAIL_STEPS = real
+        bvh.tail_steps = 1 << 16  # (the cap off: the rays-left rule alone)
+        uncapped, t_uncapped = timed(bvh, o, d, a.runs)
+        bvh.tail_steps = wavefront.TAIL_STEPS
         same = bool((capped.prim == uncapped.prim).all() and (capped.t == uncapped.t).all())
         print(f"{name}: steps {uncapped.stats.steps} -> {capped.stats.steps} (tail rays {uncapped.stats.tail_rays} -> "
               f"{capped.stats.tail_rays}), {t_uncapped:.3f} -> {t_capped:.3f} s ({t_uncapped / t_capped:.2f}x), "

@@ -92,7 +92,8 @@ def child(work: Path, n: int, modes: list[str], out: Path) -> None:
     m = be.module("llvm")
     dev = lay.to_device(m)
     r = np.load(work / "rays.npz")
-    tail = dict(tail_rays=int(z["tail_rays"]), tail_fraction=float(z["tail_fraction"]))
+    tail = dict(tail_rays=int(z["tail_rays"]), tail_fraction=float(z["tail_fraction"]),
+                tail_steps=int(z["tail_steps"]))
 
     def rays(lo, hi):  # (made outside the measured region: numpy's copies are not the traversal's)
         o, d = meshes.device_rays(m, r["o"][lo:hi], r["d"][lo:hi])
@@ -243,7 +244,7 @@ def model_misses(bvh, o, d, n: int, mode: str, pre) -> dict:
     got = {}
     for k in (n, 2 * n):
         rep = replay(bvh.layout, o[:k], d[:k], np.full(k, np.inf, np.float32), mode, False, pre.warp, pre,
-                     bvh.tail_rays, bvh.tail_fraction)
+                     bvh.tail_rays, bvh.tail_fraction, bvh.tail_steps)
         lh = rep.levels_hit  # [site, level]: transactions served there (last column: below the last level)
         miss_l1 = lh.sum(axis=1) - lh[:, 0]
         got[k] = (miss_l1, lh[:, -1], rep.prim, rep.sort_bytes)
@@ -282,7 +283,8 @@ def check(args) -> dict:
     lay = bvh.layout
     np.savez(work / "layout.npz", nodes=lay.nodes, leaves=lay.leaves, tris=lay.tris, treelet_first=lay.treelet_first,
              node_treelet=lay.node_treelet, leaf_treelet=lay.leaf_treelet, depth=lay.depth, height=lay.height,
-             branching=lay.branching, tail_rays=bvh.tail_rays, tail_fraction=bvh.tail_fraction)
+             branching=lay.branching, tail_rays=bvh.tail_rays, tail_fraction=bvh.tail_fraction,
+             tail_steps=bvh.tail_steps)
     np.savez(work / "rays.npz", o=o, d=d)
     print(f"{args.mesh}: {len(f):,} triangles, K={args.branching}, H={args.height}; {n:,} incoherent rays",
           flush=True)
@@ -312,7 +314,8 @@ def check(args) -> dict:
     if not args.keep:
         shutil.rmtree(work, ignore_errors=True)
     return {"mesh": args.mesh, "triangles": int(len(f)), "rays": n, "branching": args.branching,
-            "treelet_height": args.height, "lanes": lanes, "ll_kib": args.ll, "seed": args.seed,
+            "treelet_height": args.height, "tail_steps": bvh.tail_steps, "lanes": lanes, "ll_kib": args.ll,
+            "seed": args.seed,
             "command": "scripts/check_model_cachegrind.py " + " ".join(sys.argv[1:]), "rows": rows,
             "verdicts": verdicts(rows)}
 
@@ -353,7 +356,8 @@ def section(docs: list[dict]) -> str:
              f"{RATIO_TOLERANCE:.0%} and absolute misses within {ABSOLUTE_TOLERANCE:.0%}.", "", BLIND_SPOTS, ""]
     for doc in docs:
         parts += [f"### {Path(doc['mesh']).name} ({doc['triangles']:,} triangles), {doc['rays']:,} rays, "
-                  f"K={doc['branching']}, H={doc['treelet_height']}, {doc['lanes']} lanes", "",
+                  f"K={doc['branching']}, H={doc['treelet_height']}, the layer modes' tail after "
+                  f"{doc.get('tail_steps', 32)} steps at most, {doc['lanes']} lanes", "",
                   f"`{doc['command']}`", "",
                   "| D1 | level | mode | model read misses/ray | valgrind read misses/ray | model ÷ valgrind | "
                   "model write misses/ray | valgrind write misses/ray | hits equal |",

@@ -76,7 +76,8 @@ def main() -> int:
         dr.kernel_history()
         try:
             res, _ = wavefront.trace(m, dev, batch, mode=mode, any_hit=False, count_work=False,
-                                     tail_rays=bvh.tail_rays, tail_fraction=bvh.tail_fraction)
+                                     tail_rays=bvh.tail_rays, tail_fraction=bvh.tail_fraction,
+                                     tail_steps=bvh.tail_steps)
             dr.eval(res.t, res.prim)
             dr.sync_thread()
             kernels = [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]

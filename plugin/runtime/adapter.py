@@ -57,7 +57,7 @@ class SceneTracer(RayQueries):
     def __init__(self, scene, traversal: str = "auto", treelet_height: int = layerbvh.DEFAULT_TREELET_HEIGHT,
                  leaf_size: int | None = None,
                  count_work: bool = True, batch_rays: int = layerbvh.BATCH_RAYS,
-                 branching: int = layerbvh.DEFAULT_BRANCHING):
+                 branching: int = layerbvh.DEFAULT_BRANCHING, tail_steps: int = layerbvh.TAIL_STEPS):
         t0 = time.perf_counter()
         self.scene = scene
         self.geometry = collect_geometry(scene)
@@ -66,7 +66,7 @@ class SceneTracer(RayQueries):
         g = self.geometry
         backend = "cuda" if mi.variant().startswith("cuda") else "llvm"
         params = dict(treelet_height=treelet_height, leaf_size=leaf_size, backend=backend, batch_rays=batch_rays,
-                      branching=branching)
+                      branching=branching, tail_steps=tail_steps)
         if g.instanced:
             # Each shapegroup's triangles once; the scene's own meshes are one more placement.
             self.bvh = layerbvh.build_instanced(g.engine_groups(), g.engine_instances(), **params)
@@ -108,7 +108,8 @@ class SceneTracer(RayQueries):
         h.update(json.dumps(content).encode())
         st = self.bvh.stats
         h.update(json.dumps({"treelet_height": st.treelet_height, "leaf_size": st.leaf_size, "branching": st.branching,
-                             "batch_rays": self.bvh.batch_rays, "backend": self.bvh.backend,
+                             "batch_rays": self.bvh.batch_rays, "tail_steps": self.bvh.tail_steps,
+                             "backend": self.bvh.backend,
                              "cpu": layerbvh.cpu_model(),
                              "threads": dr.thread_count(), "layerbvh": layerbvh.__version__}).encode())
         return h.hexdigest()

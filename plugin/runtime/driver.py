@@ -90,7 +90,8 @@ def _driver_over(base: type) -> type:
         default layerbvh.DEFAULT_BRANCHING), ``treelet_height`` (8, levels of that tree),
         ``leaf_size`` (default 4 binary, 2 wide: layerbvh.default_leaf_size), ``stats`` (false:
         collect traversal work counts), ``adaptive`` (true: leave out what the scene does not need),
-        ``batch_rays`` (2^20: rays traced per batch; bounds the traversal's work memory).
+        ``batch_rays`` (2^20: rays traced per batch; bounds the traversal's work memory), ``tail_steps``
+        (1: sorted wavefront steps before the per-ray tail finishes a batch; layerbvh.TAIL_STEPS).
 
         ``registry.integrator_class`` makes, per variant and estimator, a subclass naming its
         estimator (``ESTIMATOR``) and plugin (``PLUGIN``); ``_base`` is the Mitsuba base class.
@@ -109,9 +110,11 @@ def _driver_over(base: type) -> type:
             self.stats = props.get("stats", False)
             self.adaptive = props.get("adaptive", True)
             self.batch_rays = props.get("batch_rays", layerbvh.BATCH_RAYS)
+            self.tail_steps = props.get("tail_steps", layerbvh.TAIL_STEPS)
             try:
                 self.traversal = Traversal.parse(traversal)
-                check_traversal_settings(self.treelet_height, self.leaf_size, self.batch_rays, self.branching)
+                check_traversal_settings(self.treelet_height, self.leaf_size, self.batch_rays, self.branching,
+                                         self.tail_steps)
                 self.estimator = self.ESTIMATOR(props)
             except ValueError as e:
                 raise ValueError(f"{self.PLUGIN} integrator: {e}") from None
@@ -129,7 +132,8 @@ def _driver_over(base: type) -> type:
                     analytic = sum(not s.is_mesh() for s in scene.shapes())
                 else:
                     tracer = SceneTracer(scene, self.traversal.mode, self.treelet_height, self.leaf_size,
-                                         count_work=self.stats, batch_rays=self.batch_rays, branching=self.branching)
+                                         count_work=self.stats, batch_rays=self.batch_rays, branching=self.branching,
+                                         tail_steps=self.tail_steps)
                     treelets, analytic = tracer.bvh.stats.treelets, len(tracer.geometry.analytic)
                 features = plan_features(scene, analytic, treelets, self.traversal.name, self.stats, self.adaptive,
                                          volumetric=self.estimator.VOLUMETRIC)

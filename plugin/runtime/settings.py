@@ -53,7 +53,8 @@ def check_depths(max_depth: int, rr_depth: int) -> None:
 
 
 def check_traversal_settings(treelet_height: int, leaf_size: int | None, batch_rays: int,
-                             branching: int = layerbvh.DEFAULT_BRANCHING) -> None:
+                             branching: int = layerbvh.DEFAULT_BRANCHING,
+                             tail_steps: int = layerbvh.TAIL_STEPS) -> None:
     """The render driver's rules for the traversal's properties: a ValueError naming the property
     and what it must be."""
     layerbvh.check_param("treelet_height", treelet_height)
@@ -61,4 +62,5 @@ def check_traversal_settings(treelet_height: int, leaf_size: int | None, batch_r
         layerbvh.check_param("leaf_size", leaf_size)
     layerbvh.check_param("batch_rays", batch_rays)
     layerbvh.check_param("branching", branching)
+    layerbvh.check_param("tail_steps", tail_steps)
 

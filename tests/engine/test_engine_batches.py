@@ -89,12 +89,12 @@ def test_active_mask_makes_misses_and_leaves_the_rest_alone(procedural, mode):
 def test_auto_runs_the_mode_it_reports(procedural):
     """auto's reported mode is the one that ran, told apart by what only the traversal itself
     shows: per_ray is one kernel over every ray (steps 1, all rays active in it), layer_sorted
-    takes the same steps as layer_sorted traced directly (several at treelet height 3)."""
+    takes the same steps as layer_sorted traced directly (a sorted step, then the tail)."""
     v, f = procedural
     o, d = meshes.incoherent_rays(v, 20_000, seed=6)
     bvh = layerbvh.build(v, f, treelet_height=3, backend="llvm")
     sorted_steps = bvh.trace(o, d, mode="layer_sorted").stats.steps
-    assert sorted_steps > 2
+    assert sorted_steps > 1
     small = bvh.trace(o, d, mode="auto", hint="bounce")  # below the CPU rule's 2^19 rays: per_ray, untimed
     assert small.stats.mode == "auto:per_ray"
     assert small.stats.steps == 1 and small.stats.active_per_step == [20_000], small.stats.active_per_step

@@ -109,8 +109,8 @@ def test_every_mode_returns_the_binary_per_ray_bits(procedural, branching, kind)
     ref = binary.trace(o, d, mode="per_ray")
     ref_occ = binary.occluded(o, d, np.full(len(o), np.inf, np.float32), mode="per_ray").occluded
     assert np.mean(ref.prim != layerbvh.MISS) > 0.2, "test rays should mostly hit"
-    wide = {tail: layerbvh.build(v, f, treelet_height=2, branching=branching, tail_rays=tail,
-                                 tail_fraction=0.25 if tail else 0.0) for tail in (0, 2048)}
+    wide = {tail: layerbvh.build(v, f, treelet_height=2, branching=branching, tail_rays=tail,  # (many steps)
+                                 tail_fraction=0.25 if tail else 0.0, tail_steps=32) for tail in (0, 2048)}
     for mode, tail in (("per_ray", 0), ("layer_sorted", 0), ("layer_sorted", 2048), ("layer_unsorted", 0)):
         h = wide[tail].trace(o, d, mode=mode)
         if mode != "per_ray":

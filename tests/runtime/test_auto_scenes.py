@@ -122,12 +122,14 @@ def test_decisions_kept_across_processes_whatever_the_load_order(tmp_path, share
 
 
 def test_key_follows_content_not_load_order():
-    """The same content in another shape order gives the same key; a moved vertex another."""
+    """The same content in another shape order gives the same key; a moved vertex another, and so
+    does another step cap (auto's timings are of the design they ran)."""
     from layerbvh_mitsuba.runtime.adapter import SceneTracer
     a = testing.load(STAIRCASE, RES)
     b = testing.load(STAIRCASE, RES)
     key_a = SceneTracer(a, count_work=False).device_key()
     assert SceneTracer(b, count_work=False).device_key() == key_a
+    assert SceneTracer(b, count_work=False, tail_steps=4).device_key() != key_a
     params = mi.traverse(b)
     name = next(k for k in params.keys() if k.endswith("vertex_positions"))
     v = np.array(params[name])

@@ -140,9 +140,8 @@ def test_light_rays_are_recorded_and_replayed_exactly():
     assert rec.recorder.count["camera"] == 0 and rec.meta["integrator"]["type"] == "ptracer"
     o, d, tmax = rec.recorder.arrays("light")
     bvh = layerbvh.build(rec.vertices, rec.faces, treelet_height=3, batch_rays=len(o), tail_rays=64,
-                         tail_fraction=0.02)
-    rep = locality.replay(bvh.layout, o, d, tmax, "layer_sorted", False, 32, preset("gtx965m"), bvh.tail_rays,
-                          bvh.tail_fraction)
+                         tail_fraction=0.02, tail_steps=32)
+    rep = locality.replay_tree(bvh, o, d, tmax, "layer_sorted", False, 32, preset("gtx965m"))
     chk = locality.check_trace(bvh, o, d, tmax, False, rep)
     assert chk.exact, chk
     assert (rep.prim != layerbvh.MISS).mean() > 0.5 and rep.kernels > 2

@@ -30,8 +30,7 @@ def test_the_replay_follows_the_kernels_step_cap(procedural):
     v, f = procedural
     o, d, tmax = _rays(v, "incoherent")
     bvh = layerbvh.build(v, f, branching=4, treelet_height=4, batch_rays=len(o), tail_steps=1)
-    rep = L.replay(bvh.layout, o, d, tmax, "layer_sorted", False, 32, preset("gtx965m"), bvh.tail_rays,
-                   bvh.tail_fraction, bvh.tail_steps)
+    rep = L.replay_tree(bvh, o, d, tmax, "layer_sorted", False, 32, preset("gtx965m"))
     chk = L.check_trace(bvh, o, d, tmax, False, rep)
     assert chk.exact, (chk.hit_mismatches, chk.work_mismatches, chk.load_mismatches)
     assert rep.kernels == 2 and rep.tail_steps == 1 and rep.work["steps"].max() == 2
@@ -51,9 +50,10 @@ def test_trace_follows_the_kernel(request, mesh_name, kind, any_hit):
     o, d, tmax = _rays(v, kind)
     if any_hit:  # shadow-like: finite tmax, some rays stop short of the mesh
         tmax = np.random.default_rng(1).uniform(0.0, 2.0, len(o)).astype(np.float32) * np.ptp(v, 0).max()
-    bvh = layerbvh.build(v, f, branching=2, treelet_height=3, batch_rays=len(o), tail_rays=256, tail_fraction=0.05)
+    bvh = layerbvh.build(v, f, branching=2, treelet_height=3, batch_rays=len(o), tail_rays=256, tail_fraction=0.05,
+                         tail_steps=32)  # (many steps before the tail)
     for mode in layerbvh.MODES:
-        rep = L.replay(bvh.layout, o, d, tmax, mode, any_hit, 32, preset("gtx965m"), bvh.tail_rays, bvh.tail_fraction)
+        rep = L.replay_tree(bvh, o, d, tmax, mode, any_hit, 32, preset("gtx965m"))
         chk = L.check_trace(bvh, o, d, tmax, any_hit, rep)
         assert chk.exact, (f"{mode}: {chk.hit_mismatches} hits, {chk.work_mismatches} work counts and "
                            f"{chk.load_mismatches} loads differ")
@@ -82,11 +82,11 @@ def test_trace_follows_the_kernel_on_wide_trees(bunny, branching):
     v, f = bunny
     o, d, tmax = _rays(v, "incoherent")
     bvh = layerbvh.build(v, f, branching=branching, treelet_height=3, batch_rays=len(o), tail_rays=256,
-                         tail_fraction=0.05)
+                         tail_fraction=0.05, tail_steps=32)
     short = np.random.default_rng(1).uniform(0.0, 2.0, len(o)).astype(np.float32) * np.ptp(v, 0).max()
     for any_hit, t in ((False, tmax), (True, short)):
         for mode in layerbvh.MODES:
-            rep = L.replay(bvh.layout, o, d, t, mode, any_hit, 32, preset("gtx965m"), bvh.tail_rays, bvh.tail_fraction)
+            rep = L.replay_tree(bvh, o, d, t, mode, any_hit, 32, preset("gtx965m"))
             chk = L.check_trace(bvh, o, d, t, any_hit, rep)
             assert chk.exact, (f"K={branching} {mode}: {chk.hit_mismatches} hits, {chk.work_mismatches} work counts "
                                f"and {chk.load_mismatches} loads differ")
@@ -119,11 +119,11 @@ def test_between_step_bytes_are_what_the_kernel_stored(bunny, mode):
         want += 4 * n_s + 16 * left
         if left:
             want += (8 * n_s if mode == "layer_sorted" else 4 * n_s + 4 * left) + 4 * left
-    rep = L.replay(bvh.layout, o, d, tmax, mode, False, 32, preset("gtx965m"), bvh.tail_rays, bvh.tail_fraction)
+    rep = L.replay_tree(bvh, o, d, tmax, mode, False, 32, preset("gtx965m"))
     assert int(np.sum(h.work["entries_written"])) > len(o) // 4
     assert rep.sort_bytes == want
     assert rep.result_bytes == 16 * int(np.sum(h.work["hits_written"])) > 0
-    per = L.replay(bvh.layout, o, d, tmax, "per_ray", False, 32, preset("gtx965m"), bvh.tail_rays, bvh.tail_fraction)
+    per = L.replay_tree(bvh, o, d, tmax, "per_ray", False, 32, preset("gtx965m"))
     assert per.sort_bytes == 0 and per.result_bytes == 16 * len(o)
 
 
@@ -194,7 +194,7 @@ def test_the_replays_stores_are_the_cache_models_write_misses(bunny):
                    flush_private_each_kernel=False, source="test")
     stores = list(ms.STORE_SITES)
     for mode in ("per_ray", "layer_sorted"):
-        rep = L.replay(bvh.layout, o, d, tmax, mode, False, 8, small, bvh.tail_rays, bvh.tail_fraction)
+        rep = L.replay_tree(bvh, o, d, tmax, mode, False, 8, small)
         missed = rep.levels_hit[stores, 1:].sum(axis=0)  # store transactions served by L2, DRAM
         assert rep.write_misses == (int(missed.sum()), int(missed[1:].sum())), (mode, rep.write_misses)
         assert missed.sum() > 0, mode
@@ -218,8 +218,8 @@ def test_sorting_must_cut_transactions():
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     o = np.tile(((v.min(0) + v.max(0)) / 2)[None].astype(np.float32), (n, 1))
     tmax = np.full(n, np.inf, np.float32)
-    bvh = layerbvh.build(v, f, branching=2, treelet_height=4, batch_rays=n)
-    rows = {m: L.row("fan", L.replay(bvh.layout, o, d, tmax, m, False, 32, preset("h200")), 4) for m in layerbvh.MODES}
+    bvh = layerbvh.build(v, f, branching=2, treelet_height=4, batch_rays=n, tail_steps=32)  # (steps to the end)
+    rows = {m: L.row("fan", L.replay_tree(bvh, o, d, tmax, m, False, 32, preset("h200")), 4) for m in layerbvh.MODES}
     s, u, p = rows["layer_sorted"], rows["layer_unsorted"], rows["per_ray"]
     assert s.node_transactions_per_ray < 0.5 * u.node_transactions_per_ray, (s, u)
     assert s.node_transactions_per_ray < 0.5 * p.node_transactions_per_ray, (s, p)

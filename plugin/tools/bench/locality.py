@@ -276,7 +276,8 @@ def benchmarks_section(doc: dict, fig_rel: str) -> str:
         parts += [f"### {scene} ({info['triangles']:,} triangles)", "",
                   f"Rays recorded at {info['resolution'][0]}x{info['resolution'][1]}, {info['spp']} spp: {kinds}"
                   + (f", each sampled to at most {info['sampled']:,}" if info.get("sampled") else "")
-                  + f"; the layer modes' tail after {info.get('tail_steps', TAIL_STEPS)} steps at most. Trace "
+                  + f"; the layer modes' tail after {info.get('tail_steps', LocalityRow.tail_steps)} steps at most. "
+                  + "Trace "
                   + ("checked against the kernel: every ray's hit, work counts and loads of each kind equal."
                      if exact else "check FAILED on some rays: see the run's summary.md."), ""]
         checked = model_checked.notes({r.preset: r.preset_params.get("kind", "gpu") for r in rows})

@@ -21,6 +21,9 @@ from layerbvh_mitsuba.tools.stability.machinery import CaseResult, STIFF, case
 # treelet, where layer_sorted cannot differ from per_ray (at 2: 3-6 treelets, infinite_mirrors
 # 14,602; measured 1.3-3.3 wavefront steps per query). Each case checks that the wavefront path ran.
 LAYER_HEIGHT = 2
+# The cases keep the rays in sorted steps until the rays-left rule ends them (the default takes one
+# step, then the per-ray tail): every step's exits, state records and sort run on these scenes.
+LAYER_TAIL_STEPS = 32
 CONTROL_FACTOR = 1.02  # the negative control: one material's albedo x 1.02
 GREY = "grey.reflectance.value"  # box.xml's walls, floor and ceiling
 
@@ -61,6 +64,7 @@ def image_case(name: str, scene: str, scale: float, spp: int = 16, control: str 
     scene_params = {"resx": res, "resy": res, **params}
     c = compare(mi, CompareSettings(scene=path, spp=spp, seed=3, traversal=Traversal.parse("layer_sorted"),
                                     treelet_height=LAYER_HEIGHT, params={**scene_params, "robust": False},
+                                    ours_props={"tail_steps": LAYER_TAIL_STEPS},
                                     statistical_step=False))
     st = c.stats
     stock = mi.load_dict(c.path.stock_inner())  # (the scene's estimator: path, or volpath in the media cases)
