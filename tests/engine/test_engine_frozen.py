@@ -21,7 +21,8 @@ def scaled(request, bunny):
     is the shared Python object that hid a changed any_hit from drjit's own key)."""
     v, f = bunny
     v = (v.astype(np.float64) * request.param).astype(np.float32)
-    return v, layerbvh.build(v, f)
+    # (tail_steps 32: several steps per trace, so a step recorded at one width is replayed at others)
+    return v, layerbvh.build(v, f, tail_steps=32)
 
 
 def _trace(tree, o, d, mode, any_hit):

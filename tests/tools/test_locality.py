@@ -25,16 +25,18 @@ def _rays(v, kind, n=N_RAYS, seed=5):
 
 
 def test_the_replay_follows_the_kernels_step_cap(procedural):
-    """tail_steps = 1 (one sorted step, then the tail): the replay takes the kernel's schedule, so
-    every ray's hit, work counts (its two kernel calls included) and loads equal the kernel's."""
+    """tail_steps = 2, not the default (two sorted steps, then the tail; the rays-left rule off): the
+    replay takes the kernel's schedule, so every ray's hit, work counts (its three kernel calls
+    included) and loads equal the kernel's."""
     v, f = procedural
     o, d, tmax = _rays(v, "incoherent")
-    bvh = layerbvh.build(v, f, branching=4, treelet_height=4, batch_rays=len(o), tail_steps=1)
+    bvh = layerbvh.build(v, f, branching=4, treelet_height=4, batch_rays=len(o), tail_rays=0, tail_fraction=1e-6,
+                         tail_steps=2)
     rep = L.replay_tree(bvh, o, d, tmax, "layer_sorted", False, 32, preset("gtx965m"))
     chk = L.check_trace(bvh, o, d, tmax, False, rep)
     assert chk.exact, (chk.hit_mismatches, chk.work_mismatches, chk.load_mismatches)
-    assert rep.kernels == 2 and rep.tail_steps == 1 and rep.work["steps"].max() == 2
-    assert L.row("incoherent", rep, 4).tail_steps == 1
+    assert rep.kernels == 3 and rep.tail_steps == 2 and rep.work["steps"].max() == 3
+    assert L.row("incoherent", rep, 4).tail_steps == 2
 
 
 @pytest.mark.parametrize("mesh_name", ["bunny", "procedural"])
