@@ -449,8 +449,7 @@ def measure(vertices, faces, ray_sets: list[RaySet], settings: LocalitySettings,
 
             def one(config, rs=rs, o=o, d=d, tmax=tmax):
                 mode, pre, warp = config
-                return replay(bvh.layout, o, d, tmax, mode, rs.any_hit, warp, pre, bvh.tail_rays, bvh.tail_fraction,
-                              bvh.tail_steps)
+                return replay_tree(bvh, o, d, tmax, mode, rs.any_hit, warp, pre)
             with ThreadPoolExecutor(max_workers=settings.threads or os.cpu_count() or 1) as pool:
                 reps = []
                 for config, rep in zip(configs, pool.map(one, configs)):

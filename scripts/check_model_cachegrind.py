@@ -240,11 +240,10 @@ def model_misses(bvh, o, d, n: int, mode: str, pre) -> dict:
     in total and per kind of load (memtrace.CATEGORY: nodes, triangles, stacks, ray and state
     records)."""
     from layerbvh import memsites as ms
-    from layerbvh import replay
+    from layerbvh import replay_tree
     got = {}
     for k in (n, 2 * n):
-        rep = replay(bvh.layout, o[:k], d[:k], np.full(k, np.inf, np.float32), mode, False, pre.warp, pre,
-                     bvh.tail_rays, bvh.tail_fraction, bvh.tail_steps)
+        rep = replay_tree(bvh, o[:k], d[:k], np.full(k, np.inf, np.float32), mode, False, pre.warp, pre)
         lh = rep.levels_hit  # [site, level]: transactions served there (last column: below the last level)
         miss_l1 = lh.sum(axis=1) - lh[:, 0]
         got[k] = (miss_l1, lh[:, -1], rep.prim, rep.sort_bytes)
@@ -347,6 +346,7 @@ def verdicts(rows: list[dict]) -> list[dict]:
 
 # -- BENCHMARKS.md ------------------------------------------------------------------------------------------
 def section(docs: list[dict]) -> str:
+    from layerbvh import LocalityRow  # (the step cap of documents that do not record it: LocalityRow's default)
     parts = ["## The model against valgrind's cache simulator (`scripts/check_model_cachegrind.py`)", "",
              "Read misses per ray of the real LLVM kernels under valgrind's cache simulator (callgrind "
              "`--cache-sim=yes`, the simulator of cachegrind), beside the locality "
@@ -357,7 +357,7 @@ def section(docs: list[dict]) -> str:
     for doc in docs:
         parts += [f"### {Path(doc['mesh']).name} ({doc['triangles']:,} triangles), {doc['rays']:,} rays, "
                   f"K={doc['branching']}, H={doc['treelet_height']}, the layer modes' tail after "
-                  f"{doc.get('tail_steps', 32)} steps at most, {doc['lanes']} lanes", "",
+                  f"{doc.get('tail_steps', LocalityRow.tail_steps)} steps at most, {doc['lanes']} lanes", "",
                   f"`{doc['command']}`", "",
                   "| D1 | level | mode | model read misses/ray | valgrind read misses/ray | model ÷ valgrind | "
                   "model write misses/ray | valgrind write misses/ray | hits equal |",

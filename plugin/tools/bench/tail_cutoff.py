@@ -20,7 +20,6 @@ from layerbvh_mitsuba.repo import ROOT
 
 DEFAULT_STEPS = (1, 2, 3, 4, 8, 32)  # (32: the cap before entry 61, where the rays-left rule ends most batches)
 SECTION = "tail_cutoff"  # BENCHMARKS.md's section, generated from the JSON (--benchmarks)
-ANY_HIT_KINDS = ("shadow",)
 # What a point keeps of a model row (the rest: LocalityRow's other fields, in locality.json).
 MODEL_FIELDS = ("rays", "total_dram_bytes_per_ray", "dram_bytes_per_ray", "node_dram_bytes_per_ray",
                 "triangle_dram_bytes_per_ray", "sort_bytes_per_ray", "result_bytes_per_ray", "steps_per_ray",
@@ -62,7 +61,7 @@ def ray_sources(args):
         yield spec, v, f, [layerbvh.RaySet("incoherent", o, d, np.full(len(o), np.inf, np.float32))]
     if args.scene:
         from layerbvh_mitsuba.ab.render import use_variant  # local: Mitsuba only where a scene is recorded
-        from layerbvh_mitsuba.tools.bench.locality import DEFAULT_CAP  # local: as above
+        from layerbvh_mitsuba.tools.bench.locality import ANY_HIT_KINDS, DEFAULT_CAP  # local: as above
         from layerbvh_mitsuba.tools.bench.record_rays import cached_recording  # local: as above
         mi = use_variant("llvm_ad_rgb")
         kinds = [k.strip() for k in args.kinds.split(",") if k.strip()]
@@ -73,8 +72,8 @@ def ray_sources(args):
 
 
 def _model(bvh, rs, o, d, t, mode, k, pre, warp, h):
-    rep = layerbvh.replay(bvh.layout, o, d, t, mode, rs.any_hit, warp, pre, bvh.tail_rays, bvh.tail_fraction, k)
-    bvh.tail_steps = k
+    bvh.tail_steps = k  # (the replay and the kernel it is checked against both follow it)
+    rep = layerbvh.replay_tree(bvh, o, d, t, mode, rs.any_hit, warp, pre)
     chk = layerbvh.check_trace(bvh, o, d, t, rs.any_hit, rep)
     return layerbvh.locality_row(rs.kind, rep, h, check=chk)
 
