@@ -54,6 +54,7 @@ class ReplayResult:
     seconds: float
     carried: int = 0                # rays summed over the wavefront steps they went on from (a state record each)
     result_bytes: int = 0           # bytes written to the results (steptraffic.result_traffic)
+    setup_bytes: int = 0            # bytes the trace call's passes before its first kernel read and write
     loads: dict = None              # per ray and load kind (memtrace.LOAD_KINDS): the loads fed to the cache model
     write_misses: tuple = ()        # per level: the replay's stores (memsites.STORE_SITES) that missed it
     write_back_bytes: int = 0       # dirty lines the last level wrote back into DRAM, in bytes
@@ -127,8 +128,13 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
         # hands the freed array of the step before to the one after).
         sizes["state_records_out"], sizes["keys"] = n_all * record_bytes, n_all * 4
         sizes.update({f"ray_{k}": n_all * 4 for k in range(6)})  # the origins and directions the records pack
+        sizes["tmax"] = n_all * 4
         start = [("ray_records", RAY_RECORD_BYTES, ms.BY_SLOT), ("state_records", record_bytes, ms.BY_PREVIOUS_LANE)] \
             + ([("node_treelet", 4, ms.BY_LINK_NODE)] if compact else [])
+        # The first step reads no state record: its kernel starts each ray at the root from its slot
+        # (the valid rays' indices, by lane: its "state" load) and its tmax (by slot; state.RayState.begin).
+        first_start = [("ray_records", RAY_RECORD_BYTES, ms.BY_SLOT), ("idx", 4, ms.BY_LANE),
+                       ("node_treelet", 4, ms.BY_NONE), ("tmax", 4, ms.BY_SLOT)]
     else:
         sizes.update({f"ray_{k}": n_all * 4 for k in range(PER_RAY_LOADS)})
         start = [(f"ray_{k}", 4, ms.BY_SLOT) for k in range(PER_RAY_LOADS)]
@@ -146,8 +152,15 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     for j in range(1, ms.MAX_PUSH):  # a wide node's further pushes (local, like the first)
         for site, region in zip((ms.S_PUSH + 2 * (j - 1), ms.S_PUSH + 2 * (j - 1) + 1), ("local_link", "local_t")):
             site_base[site], site_bytes[site], site_local[site] = base[region], 4, True
-    for k, (region, nbytes, _) in enumerate(start):
-        site_base[ms.S_START + k], site_bytes[ms.S_START + k] = base[region], nbytes
+
+    def use(starts):
+        """The start loads of the next launches (StartLoads): their sites' regions, and (sites, by)."""
+        for k, (region, nbytes, _) in enumerate(starts):
+            site_base[ms.S_START + k], site_bytes[ms.S_START + k] = base[region], nbytes
+        return np.arange(len(starts), dtype=np.int64), np.array([by for _, _, by in starts], np.int64)
+
+    later = use(start)
+    first = use(first_start) if layer else later
     outputs = RESULT_REGIONS
     if layer:
         outputs = [*outputs, (ms.S_KEY_OUT, "keys"), (ms.S_SPILL_LINK, "stack_link"), (ms.S_SPILL_T, "stack_t")]
@@ -155,10 +168,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
         site_base[site], site_bytes[site] = base[region], 4
     if layer:
         site_base[ms.S_STATE_OUT], site_bytes[ms.S_STATE_OUT] = base["state_records_out"], record_bytes
-    start_sites = np.arange(len(start), dtype=np.int64)
-    start_by = np.array([by for _, _, by in start], np.int64)
     prev_pos = np.zeros(n_all, np.int64)
-    prev_pos[order] = np.arange(n)  # (the first step reads the records in order)
 
     caches = Caches(preset)
     tags, stamps, dirty, params, counts, clock = caches.arrays
@@ -169,30 +179,31 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     loads = np.zeros((n_all, ms.SITES), np.int32)
     views = (nodes_f, nodes_u, tris_f, tris_u, tris_d, tf, nt)
     state = (fst, ist, loc_link, loc_t, g_link, g_t)
-    sites = (site_base, site_bytes, site_local, start_sites, start_by, prev_pos, preset.segment_bytes)
     model = (tags, stamps, dirty, params, counts, clock, tally, levels_hit, lanes, loads)
     net = np.array(SORT_NETWORKS.get(lay.branching, ()), np.int64).reshape(-1, 2)
 
-    def launch(rays, bounded, use_global, cap):
+    def launch(rays, bounded, use_global, cap, starts):
         if preset.flush_private_each_kernel:
             caches.flush_private()
         mt.run_kernel(rays, warp, preset.units, preset.resident_warps, preset.block_warps, bounded, use_global, cap,
-                      any_hit, cap_g, lay.branching, net, *views, *state, *sites, *model)
+                      any_hit, cap_g, lay.branching, net, *views, *state, site_base, site_bytes, site_local, *starts,
+                      prev_pos, preset.segment_bytes, *model)
 
     # The trace call's passes before its first kernel (wavefront.trace; Dr.Jit launches each as a
     # kernel, a memset or a compaction): the valid rays' indices; in the layer modes the ray records
-    # packed (state.RayRecords) and the first step's state records written; the results filled.
+    # packed (state.RayRecords); the results filled.
     passes = [("valid", n_all, False), ("idx", 4 * n, True)]
     if layer:
         passes += [(f"ray_{k}", 4 * n_all, False) for k in range(6)]
-        passes += [("ray_records", RAY_RECORD_BYTES * n_all, True), ("state_records", record_bytes * n, True)]
+        passes += [("ray_records", RAY_RECORD_BYTES * n_all, True)]
     passes += [(region, 4 * n_all, True) for _, region in RESULT_REGIONS]
-    for region, nbytes, write in passes if n else ():
+    passes = passes if n else []
+    for region, nbytes, write in passes:
         ms_store.setup_pass(ms.S_SETUP_STORE if write else ms.S_SETUP_LOAD, base[region], nbytes, write,
                             preset.segment_bytes, 0, tags, stamps, dirty, params, counts, clock, tally, levels_hit)
     kernels, sort_bytes, ray_steps, carried = 0, 0, 0, 0
     if n and not layer:
-        launch(order, False, False, cap_g)
+        launch(order, False, False, cap_g, later)
         kernels = 1
     elif n:
         sort = mode == "layer_sorted"
@@ -200,11 +211,13 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
         n0 = n_active = n
         while n_active > 0:
             if takes_tail(n_active, n0, kernels, tail_rays, tail_fraction, tail_steps):
-                launch(order, False, True, cap_g)
+                launch(order, False, True, cap_g, later)
                 kernels += 1
                 break
             before = lanes.copy()
-            launch(order, True, True, cap_local)
+            launch(order, True, True, cap_local, first if kernels == 0 else later)
+            if kernels == 0:  # (later steps read the records a step wrote: ping-pong from here)
+                use(start)
             kernels += 1
             ray_steps += n_active
             pushed = int(lanes[2] - before[2])
@@ -249,6 +262,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
                         kernels=kernels, sort_bytes=sort_bytes, ray_steps=ray_steps, tail_steps=tail_steps,
                         pushed=int(lanes[2]), carried=carried, seconds=time.perf_counter() - t0,
                         result_bytes=result_traffic(not layer, n, int(work["hits_written"].sum())),
+                        setup_bytes=sum(nbytes for _, nbytes, _ in passes),
                         write_misses=tuple(int(x) for x in counts[:-1, C_WRITE_MISSES]),
                         write_back_bytes=caches.dram_write_bytes())
 
@@ -287,7 +301,7 @@ class LocalityRow:
     node_dram_bytes_per_ray: float
     triangle_dram_bytes_per_ray: float
     sort_bytes_per_ray: float
-    total_dram_bytes_per_ray: float     # dram + sort + result: what the mode costs the memory bus
+    total_dram_bytes_per_ray: float     # dram + sort + result + set-up: what the mode costs the memory bus
     branching: int = 2                  # children per node of the replayed tree
     result_bytes_per_ray: float = 0.0   # hits written to the results (steptraffic.result_traffic)
     steps_per_ray: float = 0.0          # kernel calls a ray took part in (wavefront steps and the tail)
@@ -307,6 +321,10 @@ class LocalityRow:
     write_back_bytes_per_ray: float = 0.0  # dirty lines written back into DRAM (the stores' bytes: counted in the
     #                                        between-step and result bytes, so not again in total_dram_bytes_per_ray)
     preset_params: dict = field(default_factory=dict)
+    # The trace call's passes before its first kernel, each byte read or written once (streams: the
+    # valid rays' compaction, in the layer modes the ray records' packing, the results' fill). None:
+    # a row of a document written before PERFORMANCE.md entry 62, whose total left them out.
+    setup_bytes_per_ray: float | None = None
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -359,7 +377,8 @@ def row(kind: str, rep: ReplayResult, treelet_height: int, sampled_from: int | N
         dram_bytes_per_ray=dram(traversal),
         node_dram_bytes_per_ray=dram(ms.CATEGORY["node"]), triangle_dram_bytes_per_ray=dram(ms.CATEGORY["triangle"]),
         sort_bytes_per_ray=rep.sort_bytes / n,
-        total_dram_bytes_per_ray=dram(traversal) + (rep.sort_bytes + rep.result_bytes) / n,
+        total_dram_bytes_per_ray=dram(traversal) + (rep.sort_bytes + rep.result_bytes + rep.setup_bytes) / n,
+        setup_bytes_per_ray=rep.setup_bytes / n,
         branching=rep.branching, result_bytes_per_ray=rep.result_bytes / n,
         steps_per_ray=float(rep.work["steps"].sum()) / n, tail_steps=rep.tail_steps,
         sort_bytes_per_ray_step=rep.sort_bytes / rep.ray_steps if rep.ray_steps else 0.0,

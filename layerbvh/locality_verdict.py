@@ -29,7 +29,10 @@ def verdict(rows: list) -> list[str]:
             f"per_ray's node transactions (SIMD efficiency {s.simd_efficiency:.2f} vs {p.simd_efficiency:.2f}) "
             f"and read {nt:.2f}x its node and triangle bytes from DRAM; all kernel reads {reads:.2f}x, "
             f"with the {s.sort_bytes_per_ray:.0f} B/ray moved between steps "
-            f"and the hits written {total:.2f}x: sorting "
+            + ("and the hits written" if s.setup_bytes_per_ray is None or p.setup_bytes_per_ray is None else
+               f", the hits written and the set-up's passes ({s.setup_bytes_per_ray:.0f} B/ray against "
+               f"per_ray's {p.setup_bytes_per_ray:.0f})")
+            + f" {total:.2f}x: sorting "
             + ("wins on memory traffic" if s.total_dram_bytes_per_ray < p.total_dram_bytes_per_ray
                else "does not pay for itself in memory traffic")
             + (f" (per ray and step it moves {s.sort_bytes_per_ray_step:.0f} B; break-even "
@@ -79,7 +82,8 @@ def preset_verdict(rows: list) -> dict:
             f"{pre} (W={warp}, H={h}, K={k}): sorting "
             + (f"cuts the node and triangle bytes read from DRAM on {', '.join(f'{k} ({nt[k]:.2f}x)' for k in gain)}"
                if gain else f"does not cut the node and triangle bytes read from DRAM ({span(nt)} of per_ray's)")
-            + "; counting the ray state, entry stacks, the traffic between steps and the hits written, "
+            + "; counting the ray state, entry stacks, the traffic between steps and the hits written"
+            + (", and the set-up's passes, " if all(r.setup_bytes_per_ray is not None for r in mine) else ", ")
             + f"the sorted path moves {span(tot)} per_ray's DRAM bytes, so "
             + (f"it wins on memory traffic for {', '.join(wins)}." if wins else
                "it does not pay for itself in memory traffic on any kind of rays."))

@@ -74,8 +74,9 @@ NO_READ = -1
 # Where a start load reads (StartLoads' `by`): the ray's own slot, its lane in this launch, its
 # lane in the launch before (a state record gathered through the sort's permutation), or, in a
 # wavefront step, the node its link names (a compact state record's treelet lookup: an exit
-# link names its treelet and reads nothing).
-BY_SLOT, BY_LANE, BY_PREVIOUS_LANE, BY_LINK_NODE = 0, 1, 2, 3
+# link names its treelet and reads nothing); or nothing (a load this launch does not make: the
+# first step knows its rays' treelet, the root's).
+BY_SLOT, BY_LANE, BY_PREVIOUS_LANE, BY_LINK_NODE, BY_NONE = 0, 1, 2, 3, 4
 
 
 def local_stack_rows(units: int, resident: int, warp: int) -> int:

@@ -31,7 +31,7 @@ from .memsites import (BY_LANE, BY_LINK_NODE, BY_SLOT, F_D, F_INV, F_O, F_SX, F_
                        STORE_SITES, S_LOC_R_LINK, S_LOC_R_T, S_LOC_W_LINK, S_LOC_W_T, S_NODE, S_NODE_TRELET, S_PUSH,
                        S_STACK_LINK, S_STACK_T, S_START, S_TF, S_TRI, _EDGE, _EXIT, _FAR, _FAR_COORD, _FAR_UNIT,
                        _FIRST, _FLT_MAX, _HI0, _HI1, _LEAF, _LK0, _LK1, _LO0, _LO1, _MIN_RCP, _NRM, _PAYLOAD, _POP,
-                       _SHIFT, _V0, _V1, _V2)
+                       _SHIFT, _V0, _V1, _V2, BY_PREVIOUS_LANE)
 
 
 @numba.njit(cache=True, inline="always")
@@ -359,7 +359,7 @@ def _start_index(by, s, lane, prev_pos, ist, bounded):
     if by == BY_LINK_NODE:
         link = ist[s, I_LINK]
         return link & _PAYLOAD if bounded and (link & _EXIT) == 0 else NO_READ
-    return s if by == BY_SLOT else (lane if by == BY_LANE else prev_pos[s])
+    return s if by == BY_SLOT else (lane if by == BY_LANE else (prev_pos[s] if by == BY_PREVIOUS_LANE else NO_READ))
 
 
 @numba.njit(cache=True, nogil=True)

@@ -232,6 +232,19 @@ class RayState:
             s.inst, s.hit_inst = dr.full(m.UInt32, MISS, n), dr.full(m.UInt32, MISS, n)
         return s
 
+    @classmethod
+    def begin(cls, m, slot, tmax, instanced: bool = False) -> "RayState":
+        """A wavefront trace's first step's states, built in its kernel from each lane's `slot` (the
+        batch index of its ray) and the batch's `tmax` (read by slot): every ray at the root (node 0,
+        in treelet 0, so no lookup), no hit yet, nothing on its stack. The set-up writes no state
+        records for the first step to read back (issue 57 item 2: 16 or 32 bytes per ray, twice)."""
+        n = dr.width(slot)
+        zero, miss = dr.zeros(m.UInt32, n), dr.full(m.UInt32, MISS, n)
+        s = cls(t=dr.gather(m.Float, tmax, slot), prim=miss, link=zero, sp=zero, slot=slot, treelet=zero)
+        if instanced:
+            s.inst, s.hit_inst = miss, miss
+        return s
+
     def fields(self) -> dict:
         return {k: v for k, v in vars(self).items() if v is not None}
 

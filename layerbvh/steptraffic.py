@@ -45,9 +45,9 @@ def sort_traffic(n: int, pushed: int, done: int, sort: bool, last: bool, record_
 
 def limits(rows: list) -> None:
     """Fill in each layer row's break-even and lower bound (per ray and wavefront step):
-    - break-even: (per_ray's DRAM bytes per ray, its results' writes included, - the layer
-      kernels' own and their results' writes) / the ray's wavefront steps: what the steps may move
-      between them and still cost the bus less than per_ray;
+    - break-even: (per_ray's DRAM bytes per ray, its results' writes and set-up included, - the
+      layer kernels' own, their results' writes and their set-up) / the ray's wavefront steps: what
+      the steps may move between them and still cost the bus less than per_ray;
     - lower bound, for any exact wavefront design that keeps every exit (state.LEAN_STATE): each
       ray that goes on must write the next step's state once per step (t, prim, link, sp and the
       sort key: 20 bytes, LEAN_STATE_BYTES less slot, which a design could keep in place; a ray that
@@ -65,6 +65,7 @@ def limits(rows: list) -> None:
             wave_steps = r.sort_bytes_per_ray / r.sort_bytes_per_ray_step if r.sort_bytes_per_ray_step else 0.0
             if wave_steps:
                 r.break_even_bytes_per_ray_step = (p.total_dram_bytes_per_ray - r.dram_bytes_per_ray
-                                                   - r.result_bytes_per_ray) / wave_steps
+                                                   - r.result_bytes_per_ray - (r.setup_bytes_per_ray or 0.0)
+                                                   ) / wave_steps
                 r.lower_bound_bytes_per_ray_step = ((LEAN_STATE_BYTES - 4) * r.carried_per_ray_step
                                                     + ENTRY_BYTES * r.pushed_per_ray_step)

@@ -9,7 +9,7 @@ import drjit as dr
 from .collector import collector_held
 from .inputs import RayBatch
 from .layout import DeviceLayout, treelet_levels
-from .state import DirectRays, EntryStack, RayRecords, RayState, Results, SlotRays, StateRecords
+from .state import DirectRays, EntryStack, RayRecords, RayState, Results, SlotRays, StateRecords, work_fields
 from .stats import StepTime, TraceStats
 from .walk import walk
 
@@ -89,10 +89,10 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
     idx = dr.compress(batch.valid)
     if dr.width(idx) == 0:  # no valid ray: Dr.Jit kernels cannot run on empty arrays
         return res, stats
-    s = RayState.start(m, batch.tmax, count_work, instanced).take(idx)
     rays = SlotRays(m, batch.o, batch.d) if mode == "per_ray" else RayRecords(m, batch.o, batch.d)
     t0 = _sync()
     if mode == "per_ray":
+        s = RayState.start(m, batch.tmax, count_work, instanced).take(idx)
         cap = local_rows(stack_rows(lay))
         out, done = walk(m, lay, rays, s, stack=None, cap=cap, bounded=False, any_hit=any_hit,
                          count_work=count_work)
@@ -129,22 +129,25 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
     # compiled kernel serves every tree (issue 39).
     finished_key = dr.opaque(m.UInt32, finished)
     buckets = 1 << max(1, (finished).bit_length())
-    work = tuple(f for f in s.fields() if f not in StateRecords.FIELDS)  # statistics: the work counters
-    # The states as records (state.StateRecords, compact where they fit), read by the first step in order.
+    work = tuple(work_fields(instanced)) if count_work else ()  # statistics: the work counters
+    # The states between steps as records (state.StateRecords, compact where they fit), each step
+    # writing those its next step reads. The first step reads none: its kernel starts each ray at the
+    # root from its slot and tmax (RayState.begin), so `rec` is (slots, tmax) until a step wrote records.
     words = StateRecords.words(instanced, cap_global, n)
-    rec = StateRecords.write(m, s, True, words)
-    dr.eval(rec)
+    rec = (idx, m.Float(batch.tmax))  # (a copy: a frozen trace makes it opaque, not the caller's)
     peak = 0
-    n_active = n0 = dr.width(s.t)
+    n_active = n0 = dr.width(idx)
     stats.frozen = frozen
     # The state between steps: the records, the permutation the next step reads them by, and the
     # work counters (None: all zero, the first step's).
     perm, counters = dr.arange(m.UInt32, n_active), None
     kw = dict(instanced=instanced, words=words, work=work, any_hit=any_hit, count_work=count_work)
+    first = True  # (the tail never comes first: takes_tail)
     if frozen:
         counters = tuple(dr.zeros(m.UInt32, n_active) for _ in work)
         # (Every input evaluated: a literal input's size is part of a recording, and one whose
         # width then changes fails the replay's dry run and is recorded again, measured.)
+        dr.make_opaque(*rec)  # (dr.eval leaves a literal, the default tmax, as it is)
         dr.eval(perm, *counters, *res.arrays())
     while n_active > 0:
         stats.active_per_step.append(n_active)
@@ -169,10 +172,12 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
         if frozen:  # (a frozen step's replay launches its kernels as it goes)
             with collector_held():
                 rec, keys, n_done_w, counters = _STEP(m, lay, rays.rec, rec, perm, counters, res.fields(),
-                                                      tuple(stack), rec_out, cap_local, finished_key, **kw)
+                                                      tuple(stack), rec_out, cap_local, finished_key, first=first,
+                                                      **kw)
         else:
             rec, keys, n_done_w, counters = _step(m, lay, rays, rec, perm, counters, res, stack, spill, rec_out,
-                                                  cap_local, finished_key, **kw)
+                                                  cap_local, finished_key, first=first, **kw)
+        first = False
         traced = time.perf_counter()  # the step traced in Python (unfrozen: nothing launched yet)
         dr.eval(rec, keys, n_done_w, *counters, *res.arrays())
         n_step = dr.width(keys)
@@ -215,10 +220,11 @@ def frozen_steps(lay: DeviceLayout, n: int, rows: int) -> bool:
     return name in FROZEN_BACKENDS and n * rows * ENTRY_BYTES <= FROZEN_STACK_BYTES
 
 
-def _state(m, rec, perm, counters, instanced, words, work) -> RayState:
+def _state(m, rec, perm, counters, instanced, words, work, first: bool = False) -> RayState:
     """The states of the records `perm` with their work counters (gathered with them; None: the
-    first step's, all zero)."""
-    s = StateRecords.read(m, rec, perm, instanced, words)
+    first step's, all zero). The first step's (`first`; `rec` then (slots, tmax), `perm` the
+    identity) start at the root (RayState.begin)."""
+    s = RayState.begin(m, rec[0], rec[1], instanced) if first else StateRecords.read(m, rec, perm, instanced, words)
     for i, f in enumerate(work):
         setattr(s, f, dr.zeros(m.UInt32, dr.width(perm)) if counters is None
                 else dr.gather(m.UInt32, counters[i], perm))
@@ -234,7 +240,7 @@ def _tail(m, lay, rays, rec, perm, counters, res, stack, cap, *, instanced, word
 
 
 def _step(m, lay, rays, rec, perm, counters, res, stack, spill, rec_out, cap, finished_key, *, instanced, words, work,
-          any_hit, count_work):
+          any_hit, count_work, first: bool = False):
     """One wavefront step's kernel: it gathers each ray's state record by the last sort's
     permutation, walks, writes the hits it improved (by slot) as it goes, and at its end, in lane
     order, every lane's sort key, the record of each ray that goes on (into `rec_out`, the step's
@@ -242,8 +248,8 @@ def _step(m, lay, rays, rec, perm, counters, res, stack, spill, rec_out, cap, fi
     `spill`; a finished ray writes no record: on paper_mix most rays finish in step 1). Nothing
     else moves between steps but the sort. Returns the records, the keys, the count of rays that
     finished (one word, counted by an atomic in the kernel, not another pass over the keys) and
-    the work counters."""
-    s = _state(m, rec, perm, counters, instanced, words, work)
+    the work counters. The first step (`first`) reads no records: see _state."""
+    s = _state(m, rec, perm, counters, instanced, words, work, first)
     out, done = walk(m, lay, rays, s, stack=stack, cap=cap, bounded=True, any_hit=any_hit, count_work=count_work,
                      results=res, spill=spill)
     keys = dr.select(done, finished_key, out.treelet)

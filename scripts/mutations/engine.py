@@ -87,8 +87,8 @@ ENGINE = (
     Mutation("frozen_step_allocates", "a frozen wavefront step allocates its state records itself (replayed at "
              "the size it was recorded at, whatever the step's lanes)",
              "layerbvh/wavefront.py",
-             "rec_out, cap_local, finished_key, **kw)",
-             "None, cap_local, finished_key, **kw)",
+             "rec_out, cap_local, finished_key, first=first,",
+             "None, cap_local, finished_key, first=first,",
              ("tests/engine/test_engine_frozen.py::test_frozen_steps_return_the_unfrozen_hits_and_work_at_every_width",)),
     Mutation("frozen_step_collects", "the frozen steps do not hold Python's cycle collector (a Mitsuba scene "
              "freed inside a frozen step's recording aborts the process)",
@@ -176,7 +176,7 @@ ENGINE = (
     Mutation("replay_skips_setup_passes", "the locality replay leaves out the trace call's passes before its first "
              "kernel (the compaction, the records' packing, the results' fill)",
              "layerbvh/locality.py",
-             "    for region, nbytes, write in passes if n else ():\n",
+             "    for region, nbytes, write in passes:\n",
              "    for region, nbytes, write in ():\n",
              ("tests/tools/test_locality.py::test_two_warps_transactions_by_hand",)),
     Mutation("wide_drops_farthest_child", "a wide node pushes one entry fewer than it hits (the farthest hit child "
@@ -210,11 +210,38 @@ ENGINE = (
              "        out.sp = out.sp + nl\n",
              "        out.sp = out.sp + 0 * nl\n",
              ("tests/engine/test_engine_hits.py::test_modes_agree_exactly[camera-bunny]",)),
+    Mutation("first_step_ignores_tmax", "the first wavefront step starts its rays with an unbounded tmax (it "
+             "builds their states in the kernel, issue 57 item 2, and must read each ray's tmax by slot)",
+             "layerbvh/state.py",
+             "s = cls(t=dr.gather(m.Float, tmax, slot), ",
+             "s = cls(t=dr.full(m.Float, dr.inf, n), ",
+             ("tests/runtime/test_engine_vs_embree.py::test_occluded_matches_embree[layer_sorted]",)),
+    Mutation("first_step_looks_up_the_root", "the first wavefront step looks up its rays' treelet from their link "
+             "(same hits, one lookup per ray more than the replay makes: the load-count check must see it)",
+             "layerbvh/state.py",
+             "link=zero, sp=zero, slot=slot, treelet=zero)\n",
+             "link=zero, sp=zero, slot=slot, treelet=None)\n",
+             ("tests/tools/test_locality.py::test_trace_follows_the_kernel[closest-camera-bunny]",)),
+    Mutation("replay_first_step_reads_records", "the locality replay's first step reads state records the set-up "
+             "wrote (the design before issue 57 item 2), not the rays' slots and tmax",
+             "layerbvh/locality.py",
+             '        passes += [("ray_records", RAY_RECORD_BYTES * n_all, True)]\n',
+             '        passes += [("ray_records", RAY_RECORD_BYTES * n_all, True), ("state_records", record_bytes * n, '
+             'True)]\n        first_start = start\n        prev_pos[order] = np.arange(n)\n'
+             '        first = use(first_start)\n',
+             ("tests/tools/test_locality.py::test_first_step_reads_no_state_record",)),
+    Mutation("total_leaves_out_setup", "the locality model's total leaves out the trace call's set-up passes "
+             "(the layer modes' ray-record packing: 56 B a ray that per_ray does not move)",
+             "layerbvh/locality.py",
+             "(rep.sort_bytes + rep.result_bytes + rep.setup_bytes) / n,",
+             "(rep.sort_bytes + rep.result_bytes) / n,",
+             ("tests/tools/test_locality.py::test_first_step_reads_no_state_record",)),
     Mutation("state_records_read_in_lane_order", "the next step reads the state records in the order the step "
              "before wrote them, not through the sort's permutation (issue 40: nothing else permutes the states)",
              "layerbvh/wavefront.py",
-             "    s = StateRecords.read(m, rec, perm, instanced, words)\n",
-             "    s = StateRecords.read(m, rec, dr.arange(m.UInt32, dr.width(perm)), instanced, words)\n",
+             "else StateRecords.read(m, rec, perm, instanced, words)\n",
+             "else StateRecords.read(m, rec, dr.arange(m.UInt32, dr.width(perm)), "
+             "instanced, words)\n",
              ("tests/engine/test_engine_hits.py::test_modes_agree_exactly[incoherent-bunny]",)),
     Mutation("kernel_reads_one_more_array", "a wavefront step looks up the treelet of every node entry it pops, "
              "its own pushes included (same hits, one more load per pop: the load-count check must see it)",

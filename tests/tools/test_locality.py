@@ -39,6 +39,38 @@ def test_the_replay_follows_the_kernels_step_cap(procedural):
     assert L.row("incoherent", rep, 4).tail_steps == 2
 
 
+def test_first_step_reads_no_state_record(procedural):
+    """The first wavefront step starts each ray at the root from its slot and tmax (issue 57 item 2):
+    in the replay the set-up writes the valid rays' indices, the ray records and the results' fill,
+    and no state records (each pass one transaction per segment, regions page-aligned), and each
+    ray reads its tmax once, in the first step; the kernel agrees ray by ray (hits with a finite
+    tmax, and loads: no treelet lookup for the root). The set-up's bytes (each read and write once)
+    are in every mode's total: per_ray's compaction and fill, 21 B a ray; the layer modes' also
+    the ray records' packing (24 B read, 32 written)."""
+    v, f = procedural
+    o, d, _ = _rays(v, "incoherent")
+    n = len(o)
+    tmax = np.random.default_rng(3).uniform(0.0, 1.0, n).astype(np.float32) * np.ptp(v, 0).max()
+    bvh = layerbvh.build(v, f, branching=4, treelet_height=4, batch_rays=n, tail_rays=0, tail_fraction=1e-6,
+                         tail_steps=2)
+    seg = preset("gtx965m").segment_bytes
+    for mode in ("layer_sorted", "layer_unsorted"):
+        rep = L.replay_tree(bvh, o, d, tmax, mode, False, 32, preset("gtx965m"))
+        chk = L.check_trace(bvh, o, d, tmax, False, rep)
+        assert chk.exact, (mode, chk.hit_mismatches, chk.work_mismatches, chk.load_mismatches)
+        assert 0 < (rep.prim != layerbvh.MISS).mean() < 0.9, "tmax should stop some rays short"
+        passes = [4 * n, L.RAY_RECORD_BYTES * n] + [4 * n] * len(L.RESULT_REGIONS)
+        assert rep.tally[ms.S_SETUP_STORE, 0] == sum(-(-b // seg) for b in passes)
+        assert rep.tally[ms.S_START + 3, 1] == rep.rays == n
+        assert rep.kernels == 3
+        assert rep.setup_bytes == (1 + 4 + 24 + 32 + 16) * n
+        r = L.row("incoherent", rep, 4)
+        parts = r.dram_bytes_per_ray + r.sort_bytes_per_ray + r.result_bytes_per_ray + r.setup_bytes_per_ray
+        assert r.setup_bytes_per_ray == 77 and r.total_dram_bytes_per_ray == pytest.approx(parts, rel=1e-12)
+    per = L.row("incoherent", L.replay_tree(bvh, o, d, tmax, "per_ray", False, 32, preset("gtx965m")), 4)
+    assert per.setup_bytes_per_ray == 21
+
+
 @pytest.mark.parametrize("mesh_name", ["bunny", "procedural"])
 @pytest.mark.parametrize("kind", ["camera", "incoherent"])
 @pytest.mark.parametrize("any_hit", [False, True], ids=["closest", "any"])

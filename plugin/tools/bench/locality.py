@@ -241,7 +241,8 @@ def height_table(rows: list) -> str:
 def table_compact(rows: list) -> str:
     """Per kind and mode: the figures BENCHMARKS.md shows."""
     cols = ("kind", "mode", "rays", "node tx/ray", "SIMD eff.", "L1 hit", "L2 hit", "node+tri DRAM B/ray",
-            "kernel DRAM B/ray", "between steps B/ray", "hits written B/ray", "total B/ray", "steps/ray",
+            "kernel DRAM B/ray", "between steps B/ray", "hits written B/ray", "set-up B/ray", "total B/ray",
+            "steps/ray",
             "between steps B/ray/step",
             "break-even B/ray/step", "lower bound B/ray/step")
     out = "| " + " | ".join(cols) + " |\n|" + "---|" * len(cols) + "\n"
@@ -252,7 +253,8 @@ def table_compact(rows: list) -> str:
         out += (f"| {r.kind} | {r.mode} | {r.rays:,} | {r.node_transactions_per_ray:.1f} | {r.simd_efficiency:.2f} | "
                 f"{r.l1_hit_rate:.2f} | {r.l2_hit_rate:.2f} | "
                 f"{r.node_dram_bytes_per_ray + r.triangle_dram_bytes_per_ray:.0f} | {r.dram_bytes_per_ray:.0f} | "
-                f"{r.sort_bytes_per_ray:.0f} | {r.result_bytes_per_ray:.0f} | {r.total_dram_bytes_per_ray:.0f} | "
+                f"{r.sort_bytes_per_ray:.0f} | {r.result_bytes_per_ray:.0f} | {num(r.setup_bytes_per_ray)} | "
+                f"{r.total_dram_bytes_per_ray:.0f} | "
                 f"{r.steps_per_ray:.1f} | "
                 f"{num(r.sort_bytes_per_ray_step if r.mode != 'per_ray' else None)} | "
                 f"{num(r.break_even_bytes_per_ray_step)} | {num(r.lower_bound_bytes_per_ray_step)} |\n")
