@@ -127,14 +127,16 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
         # the next step reads are the ones this step wrote (ping-pong, as Dr.Jit's allocator
         # hands the freed array of the step before to the one after).
         sizes["state_records_out"], sizes["keys"] = n_all * record_bytes, n_all * 4
-        sizes.update({f"ray_{k}": n_all * 4 for k in range(6)})  # the origins and directions the records pack
+        sizes.update({f"ray_{k}": n_all * 4 for k in range(6)})  # the batch's origins and directions
         sizes["tmax"] = n_all * 4
         start = [("ray_records", RAY_RECORD_BYTES, ms.BY_SLOT), ("state_records", record_bytes, ms.BY_PREVIOUS_LANE)] \
             + ([("node_treelet", 4, ms.BY_LINK_NODE)] if compact else [])
-        # The first step reads no state record: its kernel starts each ray at the root from its slot
-        # (the valid rays' indices, by lane: its "state" load) and its tmax (by slot; state.RayState.begin).
-        first_start = [("ray_records", RAY_RECORD_BYTES, ms.BY_SLOT), ("idx", 4, ms.BY_LANE),
-                       ("node_treelet", 4, ms.BY_NONE), ("tmax", 4, ms.BY_SLOT)]
+        # The first step reads no records: its kernel starts each ray at the root from its slot (the
+        # valid rays' indices, by lane: its "state" load) and its tmax, and reads its origin and
+        # direction from the batch's six arrays (by slot, so in order: ray_0 is its "ray" load);
+        # it writes the ray record of each ray that goes on (state.RayRecords.write).
+        first_start = [("ray_0", 4, ms.BY_SLOT), ("idx", 4, ms.BY_LANE), ("node_treelet", 4, ms.BY_NONE),
+                       ("tmax", 4, ms.BY_SLOT)] + [(f"ray_{k}", 4, ms.BY_SLOT) for k in range(1, 6)]
     else:
         sizes.update({f"ray_{k}": n_all * 4 for k in range(PER_RAY_LOADS)})
         start = [(f"ray_{k}", 4, ms.BY_SLOT) for k in range(PER_RAY_LOADS)]
@@ -168,6 +170,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
         site_base[site], site_bytes[site] = base[region], 4
     if layer:
         site_base[ms.S_STATE_OUT], site_bytes[ms.S_STATE_OUT] = base["state_records_out"], record_bytes
+        site_base[ms.S_RAY_OUT], site_bytes[ms.S_RAY_OUT] = base["ray_records"], RAY_RECORD_BYTES
     prev_pos = np.zeros(n_all, np.int64)
 
     caches = Caches(preset)
@@ -190,12 +193,10 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
                       prev_pos, preset.segment_bytes, *model)
 
     # The trace call's passes before its first kernel (wavefront.trace; Dr.Jit launches each as a
-    # kernel, a memset or a compaction): the valid rays' indices; in the layer modes the ray records
-    # packed (state.RayRecords); the results filled.
+    # kernel, a memset or a compaction): the valid rays' indices; the results filled. (The layer
+    # modes' ray records are written by their first step, for the rays that go on: PERFORMANCE.md
+    # entry 63; before it, a pass packed every ray's.)
     passes = [("valid", n_all, False), ("idx", 4 * n, True)]
-    if layer:
-        passes += [(f"ray_{k}", 4 * n_all, False) for k in range(6)]
-        passes += [("ray_records", RAY_RECORD_BYTES * n_all, True)]
     passes += [(region, 4 * n_all, True) for _, region in RESULT_REGIONS]
     passes = passes if n else []
     for region, nbytes, write in passes:
@@ -203,7 +204,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
                             preset.segment_bytes, 0, tags, stamps, dirty, params, counts, clock, tally, levels_hit)
     kernels, sort_bytes, ray_steps, carried = 0, 0, 0, 0
     if n and not layer:
-        launch(order, False, False, cap_g, later)
+        launch(order, ms.WHOLE, False, cap_g, later)
         kernels = 1
     elif n:
         sort = mode == "layer_sorted"
@@ -211,11 +212,11 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
         n0 = n_active = n
         while n_active > 0:
             if takes_tail(n_active, n0, kernels, tail_rays, tail_fraction, tail_steps):
-                launch(order, False, True, cap_g, later)
+                launch(order, ms.WHOLE, True, cap_g, later)
                 kernels += 1
                 break
             before = lanes.copy()
-            launch(order, True, True, cap_local, first if kernels == 0 else later)
+            launch(order, ms.FIRST_STEP if kernels == 0 else ms.STEP, True, cap_local, first if kernels == 0 else later)
             if kernels == 0:  # (later steps read the records a step wrote: ping-pong from here)
                 use(start)
             kernels += 1
@@ -227,7 +228,8 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
             site_base[state_in], site_base[ms.S_STATE_OUT] = site_base[ms.S_STATE_OUT], site_base[state_in]
             done = int(np.count_nonzero(keys == finished))
             last = done == n_active
-            sort_bytes += sort_traffic(n_active, pushed, done, sort, last, record_bytes)
+            sort_bytes += sort_traffic(n_active, pushed, done, sort, last, record_bytes,
+                                       RAY_RECORD_BYTES if kernels == 1 else 0)
             carried += n_active - done
             if last:
                 break

@@ -41,12 +41,17 @@ S_END = S_START + 10
 # The kernels' stores as a lane ends (issue 57, item 5): its hit to the results (t, prim, u, v by
 # slot: per_ray's every ray, a step's or the tail's closer hits), and in a wavefront step its sort
 # key and, for a ray that goes on, its state record (both in lane order) and the entries it still
-# holds (above its global stack: walk's spill).
-S_RES_T, S_RES_PRIM, S_RES_U, S_RES_V, S_KEY_OUT, S_STATE_OUT, S_SPILL_LINK, S_SPILL_T = range(S_END, S_END + 8)
+# holds (above its global stack: walk's spill); in the first step also, by slot, the ray record of
+# a ray that goes on (state.RayRecords.write).
+(S_RES_T, S_RES_PRIM, S_RES_U, S_RES_V, S_KEY_OUT, S_STATE_OUT, S_SPILL_LINK, S_SPILL_T,
+ S_RAY_OUT) = range(S_END, S_END + 9)
 # The trace call's own passes before its first kernel (memstores.setup_passes): what they read and
 # what they write.
-S_SETUP_LOAD, S_SETUP_STORE = S_END + 8, S_END + 9
-SITES = S_END + 10
+S_SETUP_LOAD, S_SETUP_STORE = S_END + 9, S_END + 10
+SITES = S_END + 11
+# A launch, as memtrace.run_kernel's `bounded` takes it: a walk to the end (per_ray, the tail), a
+# wavefront step, or the first step (which also writes the ray records).
+WHOLE, STEP, FIRST_STEP = 0, 1, 2
 SITE_NAMES = ("triangle", "local_read_link", "local_read_t", "stack_link", "stack_t", "node_treelet",
               "treelet_root", "node", "local_write_link", "local_write_t") + tuple(
                   f"local_write_{w}_{j}" for j in range(1, MAX_PUSH) for w in ("link", "t"))
@@ -54,7 +59,7 @@ SITE_NAMES = ("triangle", "local_read_link", "local_read_t", "stack_link", "stac
 CATEGORY = {"node": (S_NODE, S_NODE_TRELET, S_TF), "triangle": (S_TRI,), "stack": (S_STACK_LINK, S_STACK_T),
             "local": (S_LOC_R_LINK, S_LOC_R_T, S_LOC_W_LINK, S_LOC_W_T) + tuple(range(S_PUSH, S_START)),
             "results": (S_RES_T, S_RES_PRIM, S_RES_U, S_RES_V),
-            "step out": (S_KEY_OUT, S_STATE_OUT, S_SPILL_LINK, S_SPILL_T),
+            "step out": (S_KEY_OUT, S_STATE_OUT, S_SPILL_LINK, S_SPILL_T, S_RAY_OUT),
             "set-up": (S_SETUP_LOAD, S_SETUP_STORE)}
 # ... and the start sites are "ray". The local write sites and the sites from S_END on are the
 # replay's stores (the cache model's write-allocate and write-back, cachesim.py); every other site

@@ -6,15 +6,16 @@ import numba
 
 from . import cachesim, memsites, numba_cache
 from .cachesim import cache_access, coalesce
-from .memsites import (I_DONE, I_HITS, I_NL, I_SP, NO_READ, S_END, S_KEY_OUT, S_RES_T, S_RES_V, S_SPILL_LINK, S_SPILL_T,
-                       S_STATE_OUT, SITES)
+from .memsites import (FIRST_STEP, I_DONE, I_HITS, I_NL, I_SP, NO_READ, S_END, S_KEY_OUT, S_RAY_OUT, S_RES_T, S_RES_V,
+                       S_SPILL_LINK, S_SPILL_T, S_STATE_OUT, SITES)
 
 # What the kernels do (walk.walk, wavefront._step/_tail): per_ray's kernel writes every ray's hit
 # (or miss) by slot as the ray ends (Results.write); a step and the tail write each closer hit by
 # slot as they find it, which the replay stands for by one write of the ray's last closer hit as
 # its lane ends (a ray that improves its hit twice in a step writes the same slot's lines again,
 # which the first write brought into L1). A step writes every lane's sort key, and each going-on
-# ray's state record, in lane order (StateRecords.write into the step's `rec_out`).
+# ray's state record, in lane order (StateRecords.write into the step's `rec_out`); the first step
+# also each going-on ray's ray record, by slot (RayRecords.write).
 
 
 @numba.njit(cache=True, inline="always")
@@ -40,6 +41,9 @@ def lane_end(s, position, bounded, use_global, ist, req_j):
         if ist[s, I_DONE] == 0:
             req_j[S_STATE_OUT] = position
             used |= 1 << S_STATE_OUT
+            if bounded == FIRST_STEP:
+                req_j[S_RAY_OUT] = s
+                used |= 1 << S_RAY_OUT
     return used
 
 

@@ -91,22 +91,33 @@ class SlotRays:
 class RayRecords:
     """Origins and directions as one 32-byte record per slot, [ox oy oz dx dy dz 0 0] (the layer
     modes: a sorted step reads a ray with one cache line instead of carrying six arrays through
-    every permutation)."""
+    every permutation). A trace's records are written by its first wavefront step, for the rays
+    that go on (`unfilled`, `write`): that step reads its rays in slot order, where the six arrays
+    coalesce, and a ray that finishes there needs no record (PERFORMANCE.md entry 63)."""
 
     STRIDE = 8  # floats per record; total: 32 bytes
 
     def __init__(self, m, o, d):
+        """Every ray's record, packed by one kernel (scripts/bench_ray_records.py measures it)."""
         self.m = m
         n = dr.width(o[0])
-        # One kernel writes each record whole (its padding too, so nothing fills the array first).
-        # Six scatters of one component each were six kernels, each passing over every record:
-        # on the CPU, valgrind counted 3.5 write misses per ray for them, beside the step
-        # kernels' 2.6 (PERFORMANCE.md, entry 59).
-        zero = dr.zeros(m.Float, n)
-        rec = dr.empty(m.Float, n * self.STRIDE)
-        dr.scatter(rec, m.ArrayXf([*o, *d] + [zero] * (self.STRIDE - 6)), dr.arange(m.UInt32, n))
-        dr.eval(rec)
-        self.rec = rec
+        self.rec = dr.empty(m.Float, n * self.STRIDE)
+        self.write(o, d, dr.arange(m.UInt32, n), True)
+        dr.eval(self.rec)
+
+    @classmethod
+    def unfilled(cls, m, n: int) -> "RayRecords":
+        """Room for `n` records, none written yet (evaluated: a frozen step takes it as an input)."""
+        rays = cls.over(m, dr.empty(m.Float, n * cls.STRIDE))
+        dr.make_opaque(rays.rec)  # (allocated, no kernel: dr.eval leaves an empty array undefined)
+        return rays
+
+    def write(self, o, d, slot, active) -> None:
+        """The records of the rays `slot` where `active`, each written whole (its padding too, so
+        nothing fills the array first: six scatters of one component each were six kernels, each
+        passing over every record, valgrind's 3.5 write misses per ray, PERFORMANCE.md entry 59)."""
+        zero = dr.zeros(self.m.Float, dr.width(slot))
+        dr.scatter(self.rec, self.m.ArrayXf([*o, *d] + [zero] * (self.STRIDE - 6)), slot, active)
 
     @classmethod
     def over(cls, m, rec) -> "RayRecords":

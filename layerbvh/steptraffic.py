@@ -17,7 +17,7 @@ def result_traffic(per_ray: bool, rays: int, hits_written: int) -> int:
     return HIT_BYTES * (rays if per_ray else hits_written)
 
 
-def sort_traffic(n: int, pushed: int, done: int, sort: bool, last: bool, record_bytes: int) -> int:
+def sort_traffic(n: int, pushed: int, done: int, sort: bool, last: bool, record_bytes: int, ray_bytes: int = 0) -> int:
     """Bytes a wavefront step of `n` rays moves besides its traversal kernel's loads (issue 40's
     design, wavefront.trace): each array element read or written once, all of it counted as DRAM
     traffic (streams far larger than any cache). `pushed` (the entries the rays that go on still
@@ -27,6 +27,8 @@ def sort_traffic(n: int, pushed: int, done: int, sort: bool, last: bool, record_
       that goes on, in lane order (`record_bytes`: its format's, state.StateRecords, written whole);
       the entries each such ray still holds, above its global stack, as its walk ends (walk's
       spill: an entry pushed and taken within the step never leaves the kernel's local stack);
+      in the first step also the ray record of each such ray (`ray_bytes`, by slot: the later
+      kernels read it; state.RayRecords.write);
       the finished-ray count is an atomic on one word (no bytes per ray);
     - then, unless every ray finished, the sort (block_mkperm reads the keys, writes the
       permutation) or the compaction (keys read, the rays that go on written);
@@ -36,7 +38,7 @@ def sort_traffic(n: int, pushed: int, done: int, sort: bool, last: bool, record_
     The write-back's reads of the lane's local stack (memory that lane wrote in the same kernel)
     are not counted."""
     left = n - done
-    kernel = n * 4 + left * record_bytes + pushed * ENTRY_BYTES
+    kernel = n * 4 + left * (record_bytes + ray_bytes) + pushed * ENTRY_BYTES
     if last:
         return kernel
     order = n * 4 + n * 4 if sort else n * 4 + left * 4  # block_mkperm; compress

@@ -89,7 +89,9 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
     idx = dr.compress(batch.valid)
     if dr.width(idx) == 0:  # no valid ray: Dr.Jit kernels cannot run on empty arrays
         return res, stats
-    rays = SlotRays(m, batch.o, batch.d) if mode == "per_ray" else RayRecords(m, batch.o, batch.d)
+    # per_ray reads the batch's arrays by slot; the layer modes' later kernels read a ray's 32-byte
+    # record, which the first step writes for the rays that go on (RayRecords.write).
+    rays = SlotRays(m, batch.o, batch.d) if mode == "per_ray" else RayRecords.unfilled(m, n)
     t0 = _sync()
     if mode == "per_ray":
         s = RayState.start(m, batch.tmax, count_work, instanced).take(idx)
@@ -132,9 +134,11 @@ def trace(m, lay: DeviceLayout, batch: RayBatch, *, mode: str, any_hit: bool, ta
     work = tuple(work_fields(instanced)) if count_work else ()  # statistics: the work counters
     # The states between steps as records (state.StateRecords, compact where they fit), each step
     # writing those its next step reads. The first step reads none: its kernel starts each ray at the
-    # root from its slot and tmax (RayState.begin), so `rec` is (slots, tmax) until a step wrote records.
+    # root from its slot and tmax (RayState.begin) and reads its origin and direction from the
+    # batch's arrays, so `rec` is (slots, tmax, origin, direction) until a step wrote records.
     words = StateRecords.words(instanced, cap_global, n)
-    rec = (idx, m.Float(batch.tmax))  # (a copy: a frozen trace makes it opaque, not the caller's)
+    rec = (idx, *(m.Float(x) for x in (batch.tmax, *batch.o, *batch.d)))  # (new handles: a frozen trace
+    # makes them opaque, not the caller's)
     peak = 0
     n_active = n0 = dr.width(idx)
     stats.frozen = frozen
@@ -222,7 +226,7 @@ def frozen_steps(lay: DeviceLayout, n: int, rows: int) -> bool:
 
 def _state(m, rec, perm, counters, instanced, words, work, first: bool = False) -> RayState:
     """The states of the records `perm` with their work counters (gathered with them; None: the
-    first step's, all zero). The first step's (`first`; `rec` then (slots, tmax), `perm` the
+    first step's, all zero). The first step's (`first`; `rec` then (slots, tmax, ...), `perm` the
     identity) start at the root (RayState.begin)."""
     s = RayState.begin(m, rec[0], rec[1], instanced) if first else StateRecords.read(m, rec, perm, instanced, words)
     for i, f in enumerate(work):
@@ -248,10 +252,15 @@ def _step(m, lay, rays, rec, perm, counters, res, stack, spill, rec_out, cap, fi
     `spill`; a finished ray writes no record: on paper_mix most rays finish in step 1). Nothing
     else moves between steps but the sort. Returns the records, the keys, the count of rays that
     finished (one word, counted by an atomic in the kernel, not another pass over the keys) and
-    the work counters. The first step (`first`) reads no records: see _state."""
+    the work counters. The first step (`first`) reads no records: it takes its rays' states from
+    _state and their origins and directions from the batch's arrays (in slot order, where they
+    coalesce), and writes the ray record of each ray that goes on, for the kernels after it."""
     s = _state(m, rec, perm, counters, instanced, words, work, first)
-    out, done = walk(m, lay, rays, s, stack=stack, cap=cap, bounded=True, any_hit=any_hit, count_work=count_work,
+    walked = DirectRays(*SlotRays(m, rec[2:5], rec[5:8]).load(s.slot)) if first else rays
+    out, done = walk(m, lay, walked, s, stack=stack, cap=cap, bounded=True, any_hit=any_hit, count_work=count_work,
                      results=res, spill=spill)
+    if first:
+        rays.write(walked.o, walked.d, s.slot, ~done)
     keys = dr.select(done, finished_key, out.treelet)
     rec_out = StateRecords.write(m, out, ~done, words, into=rec_out)
     n_done_w = dr.zeros(m.UInt32, 1)

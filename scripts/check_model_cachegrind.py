@@ -61,9 +61,11 @@ RATIO_TOLERANCE, ABSOLUTE_TOLERANCE = 0.15, 0.30
 DISAGREES_EXIT = 3  # (1: a disturbed measurement, 2: no valgrind)
 BLIND_SPOTS = (
     "The model simulates the traversal kernels' loads and stores (the local entry stack; as a lane ends, "
-    "its hit, and in a step its sort key, state record and held entries; write-allocate, write-back) "
-    "and the trace call's passes before its first kernel (the valid rays' compaction, the ray and "
-    "state records' packing, the results' fill): the sort and compaction between steps and the "
+    "its hit, and in a step its sort key, state record and held entries, in the first step its ray record; "
+    "write-allocate, write-back) "
+    "and the trace call's passes before its first kernel (the valid rays' compaction, the results' fill; "
+    "before PERFORMANCE.md entries 62 and 63 also the packing of every ray's state and ray records): the "
+    "sort and compaction between steps and the "
     "host's work are not in its misses (the layer modes' `sort_bytes` stand for them elsewhere), nor "
     "are the kernels' stack frames (register spills: scripts/kernel_frame.py); valgrind counts every "
     "read and write the trace call makes. Valgrind's own simplifications: an inclusive LL, LRU "

@@ -28,8 +28,8 @@ ENGINE = (
     Mutation("between_steps_forget_held_entries", "the model's between-step bytes leave out the entries each ray "
              "writes above its global stack",
              "layerbvh/steptraffic.py",
-             "    kernel = n * 4 + left * record_bytes + pushed * ENTRY_BYTES\n",
-             "    kernel = n * 4 + left * record_bytes\n",
+             "    kernel = n * 4 + left * (record_bytes + ray_bytes) + pushed * ENTRY_BYTES\n",
+             "    kernel = n * 4 + left * (record_bytes + ray_bytes)\n",
              ("tests/tools/test_locality.py::test_between_step_bytes_are_what_the_kernel_stored[layer_sorted]",)),
     Mutation("tie_rule_flipped", "ties in t go to the larger primitive id",
              "layerbvh/walk.py",
@@ -164,8 +164,8 @@ ENGINE = (
     Mutation("ray_records_filled_first", "the ray records' array is filled with zeros before the kernel writes them "
              "(a memset pass over every record)",
              "layerbvh/state.py",
-             "        rec = dr.empty(m.Float, n * self.STRIDE)\n",
-             "        rec = dr.zeros(m.Float, n * self.STRIDE)\n",
+             "        self.rec = dr.empty(m.Float, n * self.STRIDE)\n",
+             "        self.rec = dr.zeros(m.Float, n * self.STRIDE)\n",
              ("tests/engine/test_engine_kernels.py::test_ray_records_are_packed_by_one_kernel",)),
     Mutation("line_over_120_columns", "a line of 130 columns in a module off the ruff backlog",
              "layerbvh/cachesim.py",
@@ -225,10 +225,10 @@ ENGINE = (
     Mutation("replay_first_step_reads_records", "the locality replay's first step reads state records the set-up "
              "wrote (the design before issue 57 item 2), not the rays' slots and tmax",
              "layerbvh/locality.py",
-             '        passes += [("ray_records", RAY_RECORD_BYTES * n_all, True)]\n',
-             '        passes += [("ray_records", RAY_RECORD_BYTES * n_all, True), ("state_records", record_bytes * n, '
-             'True)]\n        first_start = start\n        prev_pos[order] = np.arange(n)\n'
-             '        first = use(first_start)\n',
+             '    passes += [(region, 4 * n_all, True) for _, region in RESULT_REGIONS]\n',
+             '    passes += [(region, 4 * n_all, True) for _, region in RESULT_REGIONS]\n    if layer:\n'
+             '        passes += [("state_records", record_bytes * n, True)]\n        first_start = start\n'
+             '        prev_pos[order] = np.arange(n)\n        first = use(first_start)\n',
              ("tests/tools/test_locality.py::test_first_step_reads_no_state_record",)),
     Mutation("total_leaves_out_setup", "the locality model's total leaves out the trace call's set-up passes "
              "(the layer modes' ray-record packing: 56 B a ray that per_ray does not move)",
@@ -236,6 +236,24 @@ ENGINE = (
              "(rep.sort_bytes + rep.result_bytes + rep.setup_bytes) / n,",
              "(rep.sort_bytes + rep.result_bytes) / n,",
              ("tests/tools/test_locality.py::test_first_step_reads_no_state_record",)),
+    Mutation("first_step_writes_no_ray_records", "the first wavefront step does not write the ray records of the "
+             "rays that go on (the kernels after it read unwritten memory)",
+             "layerbvh/wavefront.py",
+             "        rays.write(walked.o, walked.d, s.slot, ~done)\n",
+             "        pass\n",
+             ("tests/engine/test_engine_hits.py::test_modes_agree_exactly[incoherent-bunny]",)),
+    Mutation("replay_first_step_stores_no_ray_records", "the locality replay's first step does not store the ray "
+             "records of the rays that go on (the write-misses it causes go unmodelled)",
+             "layerbvh/memstores.py",
+             "            if bounded == FIRST_STEP:\n",
+             "            if False:\n",
+             ("tests/tools/test_locality.py::test_first_step_reads_no_state_record",)),
+    Mutation("between_steps_forget_ray_records", "the model's between-step bytes leave out the ray records the "
+             "first step writes",
+             "layerbvh/locality.py",
+             "                                       RAY_RECORD_BYTES if kernels == 1 else 0)\n",
+             "                                       0)\n",
+             ("tests/tools/test_locality.py::test_between_step_bytes_are_what_the_kernel_stored[layer_sorted]",)),
     Mutation("state_records_read_in_lane_order", "the next step reads the state records in the order the step "
              "before wrote them, not through the sort's permutation (issue 40: nothing else permutes the states)",
              "layerbvh/wavefront.py",

@@ -112,8 +112,9 @@ def test_a_walk_traces_its_loop_once(mode, branching, instanced, bunny):
 
 
 def test_ray_records_are_packed_by_one_kernel():
-    """A layer trace packs each ray's origin and direction into one 32-byte record (state.RayRecords)
-    with one kernel that writes the records whole, nothing filled first: six scatters of a
+    """RayRecords packs each ray's origin and direction into one 32-byte record with one kernel
+    that writes the records whole (RayRecords.write: a layer trace's first step writes those of
+    the rays that go on the same way, PERFORMANCE.md entry 63), nothing filled first: six scatters of a
     component each were six kernels, each passing over every record, and a memset (PERFORMANCE.md,
     entry 59: 3 of valgrind's 6.9 write misses per ray)."""
     from layerbvh.state import RayRecords

@@ -40,13 +40,14 @@ def test_the_replay_follows_the_kernels_step_cap(procedural):
 
 
 def test_first_step_reads_no_state_record(procedural):
-    """The first wavefront step starts each ray at the root from its slot and tmax (issue 57 item 2):
-    in the replay the set-up writes the valid rays' indices, the ray records and the results' fill,
-    and no state records (each pass one transaction per segment, regions page-aligned), and each
-    ray reads its tmax once, in the first step; the kernel agrees ray by ray (hits with a finite
-    tmax, and loads: no treelet lookup for the root). The set-up's bytes (each read and write once)
-    are in every mode's total: per_ray's compaction and fill, 21 B a ray; the layer modes' also
-    the ray records' packing (24 B read, 32 written)."""
+    """The first wavefront step starts each ray at the root from its slot and tmax (issue 57 item 2)
+    and reads its origin and direction from the batch's arrays: in the replay the set-up writes
+    the valid rays' indices and the results' fill, no state records and no ray records (each pass
+    one transaction per segment, regions page-aligned); each ray reads its tmax and its six
+    components once, in the first step, which writes the ray record of every ray that goes on (by
+    slot, for the kernels after it: PERFORMANCE.md entry 63); the kernel agrees ray by ray (hits
+    with a finite tmax, and loads: no treelet lookup for the root). The set-up's bytes (each read
+    and write once) are in every mode's total: the compaction and the fill, 21 B a ray."""
     v, f = procedural
     o, d, _ = _rays(v, "incoherent")
     n = len(o)
@@ -59,14 +60,17 @@ def test_first_step_reads_no_state_record(procedural):
         chk = L.check_trace(bvh, o, d, tmax, False, rep)
         assert chk.exact, (mode, chk.hit_mismatches, chk.work_mismatches, chk.load_mismatches)
         assert 0 < (rep.prim != layerbvh.MISS).mean() < 0.9, "tmax should stop some rays short"
-        passes = [4 * n, L.RAY_RECORD_BYTES * n] + [4 * n] * len(L.RESULT_REGIONS)
+        passes = [4 * n] + [4 * n] * len(L.RESULT_REGIONS)
         assert rep.tally[ms.S_SETUP_STORE, 0] == sum(-(-b // seg) for b in passes)
-        assert rep.tally[ms.S_START + 3, 1] == rep.rays == n
+        req = rep.tally[:, 1]
+        assert req[ms.S_START + 3] == rep.rays == n and all(req[ms.S_START + k] == n for k in range(4, 9))
+        went_on = int(np.count_nonzero(rep.work["steps"] >= 2))
+        assert 0 < went_on < n and req[ms.S_RAY_OUT] == went_on
         assert rep.kernels == 3
-        assert rep.setup_bytes == (1 + 4 + 24 + 32 + 16) * n
+        assert rep.setup_bytes == (1 + 4 + 16) * n
         r = L.row("incoherent", rep, 4)
         parts = r.dram_bytes_per_ray + r.sort_bytes_per_ray + r.result_bytes_per_ray + r.setup_bytes_per_ray
-        assert r.setup_bytes_per_ray == 77 and r.total_dram_bytes_per_ray == pytest.approx(parts, rel=1e-12)
+        assert r.setup_bytes_per_ray == 21 and r.total_dram_bytes_per_ray == pytest.approx(parts, rel=1e-12)
     per = L.row("incoherent", L.replay_tree(bvh, o, d, tmax, "per_ray", False, 32, preset("gtx965m")), 4)
     assert per.setup_bytes_per_ray == 21
 
@@ -137,7 +141,8 @@ def test_between_step_bytes_are_what_the_kernel_stored(bunny, mode):
     kernel itself reports: the rays of each step (stats.active_per_step), and per ray the held
     entries it wrote above its global stack and the closer hits it wrote by slot (its store
     counters). Per step: every lane's 4-byte key, a state record per ray that goes on (the bunny's
-    tree takes the compact 16-byte one: state.StateRecords); between steps the sort (keys read,
+    tree takes the compact 16-byte one: state.StateRecords), and in the first step its 32-byte ray
+    record (state.RayRecords.write); between steps the sort (keys read,
     permutation written; compaction: keys read, survivors written) and the permutation read by
     the next step; 8 bytes per entry. Results: 16 bytes per hit written (per_ray: per ray). No
     tail: every ray finishes in the steps, so every entry counted is a step's."""
@@ -150,7 +155,7 @@ def test_between_step_bytes_are_what_the_kernel_stored(bunny, mode):
     want = 8 * int(np.sum(h.work["entries_written"]))
     for s, n_s in enumerate(n):
         left = n[s + 1] if s + 1 < len(n) else 0
-        want += 4 * n_s + 16 * left
+        want += 4 * n_s + (16 + (32 if s == 0 else 0)) * left
         if left:
             want += (8 * n_s if mode == "layer_sorted" else 4 * n_s + 4 * left) + 4 * left
     rep = L.replay_tree(bvh, o, d, tmax, mode, False, 32, preset("gtx965m"))
