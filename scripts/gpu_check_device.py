@@ -2,7 +2,8 @@
 recorded rays on the GPU for each (branching, treelet height) of model.json, checks their hits
 against the LLVM replay, and prints the measured layer_sorted x per_ray beside the locality model's
 prediction for that GPU; then the same at the GPU's own scale on a sphere soup (1M-16M incoherent
-rays).
+rays), at each step cap k of --tail-steps (default 1 and 32: the tail after one sorted step, the
+default since PERFORMANCE.md entry 61, against many steps).
 
 Needs only the engine (layerbvh: numpy, numba, drjit), so it runs on a device image without
 Mitsuba:  python scripts/gpu_check_device.py out/gpu_check [--backend cuda] [--runs 5]
@@ -37,6 +38,9 @@ def main(argv=None) -> int:
     p.add_argument("--soup", type=int, default=1_000_000,
                    help="also time a sphere soup of about this many triangles (0: skip); no model for it")
     p.add_argument("--soup-rays", type=int, nargs="+", default=(1_000_000, 4_000_000, 16_000_000))
+    p.add_argument("--tail-steps", default="1,32",
+                   help="the soup's layer_sorted at each step cap k (comma list; PERFORMANCE.md entry 61: the "
+                        "default became 1 on the CPU and the GPU model; not yet timed on a GPU)")
     p.add_argument("--kernels", type=int, default=0, metavar="RAYS",
                    help="only list each launch's kernel time (Dr.Jit's kernel history) for one trace of "
                         "RAYS soup rays per mode and (branching, height), then stop")
@@ -128,29 +132,31 @@ def print_steps(split: dict) -> None:
 def _time_soup(configs, args) -> list[dict]:
     """The stress case at the GPU's own scale: incoherent rays (meshes.incoherent_rays, as the
     benchmarks make them) into a sphere soup, closest hit and any hit, at each batch size of
-    --soup-rays and each (branching, height); a batch of 200k rays is too small to fill an H200."""
+    --soup-rays, each (branching, height) and each step cap of --tail-steps (one build; the cap is
+    the tree's tail_steps); a batch of 200k rays is too small to fill an H200."""
     v, f = meshes.sphere_soup(max(1, args.soup // 960), 960)
     most = max(args.soup_rays)
     o_all, d_all = meshes.incoherent_rays(v, most, seed=1)
     print(f"\nsphere soup, {len(f):,} triangles, incoherent rays (no model: timing only)")
-    print(f"{'K':>2} {'H':>3} {'query':8} {'rays':>10} {'per_ray Mrays/s':>16} {'sorted Mrays/s':>15} "
+    print(f"{'K':>2} {'H':>3} {'k':>3} {'query':8} {'rays':>10} {'per_ray Mrays/s':>16} {'sorted Mrays/s':>15} "
           f"{'measured sorted x per_ray':>26}")
     out = []
     for k, h in configs:
         bvh = layerbvh.build(v, f, treelet_height=h, backend=args.backend, branching=k, batch_rays=most)
-        for n in args.soup_rays:
-            for query in ("closest", "any"):
-                r = _time_kind(bvh, o_all[:n], d_all[:n], np.full(n, np.inf, np.float32), query == "any", args.runs)
-                r.update(kind="soup", branching=k, treelet_height=h, query=query)
-                out.append(r)
-                print(f"{k:2} {h:3} {query:8} {n:10,} {n / r['seconds']['per_ray'] / 1e6:16.2f} "
-                      f"{n / r['seconds']['layer_sorted'] / 1e6:15.2f} {r['measured_sorted_over_per_ray']:26.2f}  "
-                      f"(hits per_ray vs sorted differ: {r['modes_disagree']})", flush=True)
-                sp = r["split"]["layer_sorted"]
-                print(f"{'':15} sorted: {sp['steps']} steps; kernels {sp['traverse_s'] * 1e3:.2f} ms, "
-                      f"sort {sp['sort_s'] * 1e3:.2f} ms; per_ray "
-                      f"{r['split']['per_ray']['traverse_s'] * 1e3:.2f} ms", flush=True)
-                print_steps(sp)
+        for cap, n, query in ((int(c), n, q) for c in args.tail_steps.split(",") for n in args.soup_rays
+                              for q in ("closest", "any")):
+            bvh.tail_steps = cap
+            r = _time_kind(bvh, o_all[:n], d_all[:n], np.full(n, np.inf, np.float32), query == "any", args.runs)
+            r.update(kind="soup", branching=k, treelet_height=h, tail_steps=cap, query=query)
+            out.append(r)
+            print(f"{k:2} {h:3} {cap:3} {query:8} {n:10,} {n / r['seconds']['per_ray'] / 1e6:16.2f} "
+                  f"{n / r['seconds']['layer_sorted'] / 1e6:15.2f} {r['measured_sorted_over_per_ray']:26.2f}  "
+                  f"(hits per_ray vs sorted differ: {r['modes_disagree']})", flush=True)
+            sp = r["split"]["layer_sorted"]
+            print(f"{'':15} sorted: {sp['steps']} steps; kernels {sp['traverse_s'] * 1e3:.2f} ms, "
+                  f"sort {sp['sort_s'] * 1e3:.2f} ms; per_ray "
+                  f"{r['split']['per_ray']['traverse_s'] * 1e3:.2f} ms", flush=True)
+            print_steps(sp)
     return out
 
 
