@@ -17,8 +17,13 @@ AUTO_MARGIN = 0.05  # layer_sorted must be this much faster: it also needs far m
 # What is decided without timing, per backend. On the CPU (BENCHMARKS.md: 2-core Zen 3, AVX2)
 # sorting lost on every camera and shadow ray set (0.59-0.84x per_ray) and on every set below
 # 500k rays (0.62-0.80x), and won or tied only on incoherent batches of 0.85-1M rays (up to
-# 1.11x); a few rays per treelet cannot repay a sort and a launch per step. Nothing has been
-# measured on a GPU yet, so there every kind from 2^16 rays is timed.
+# 1.11x); a few rays per treelet cannot repay a sort and a launch per step. Timed again with the
+# tail after one sorted step (scripts/bench_auto_rules.py, docs/bench/auto_rules.json, PERFORMANCE.md
+# entry 64, AMD EPYC AVX2): camera rays still lose at every size (0.72-0.79x), shadow rays too
+# (0.76-0.87x, entry 61); incoherent rays win from 2^17 rays over 600k triangles (1.07-1.16x) but
+# on the bunny (69k) only tie from 2^19 (0.88-0.93x below it). The threshold stays 2^19: below it
+# the gain is scene-dependent and small, and timing would compile and run the sorted kernels in
+# every small render. Nothing has been measured on a GPU yet, so there every kind from 2^16 rays is timed.
 RULES = {
     "llvm": {"min_rays": 1 << 19, "per_ray_hints": ("camera", "shadow")},
     "cuda": {"min_rays": 1 << 16, "per_ray_hints": ()},
