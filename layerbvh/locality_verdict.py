@@ -28,8 +28,8 @@ def verdict(rows: list) -> list[str]:
             f"{kind}, {pre}, W={warp}, H={h}, K={k}: sorted steps issue {tx:.2f}x "
             f"per_ray's node transactions (SIMD efficiency {s.simd_efficiency:.2f} vs {p.simd_efficiency:.2f}) "
             f"and read {nt:.2f}x its node and triangle bytes from DRAM; all kernel reads {reads:.2f}x, "
-            f"with the {s.sort_bytes_per_ray:.0f} B/ray moved between steps "
-            + ("and the hits written" if s.setup_bytes_per_ray is None or p.setup_bytes_per_ray is None else
+            f"with the {s.sort_bytes_per_ray:.0f} B/ray moved between steps"
+            + (" and the hits written" if s.setup_bytes_per_ray is None or p.setup_bytes_per_ray is None else
                f", the hits written and the set-up's passes ({s.setup_bytes_per_ray:.0f} B/ray against "
                f"per_ray's {p.setup_bytes_per_ray:.0f})")
             + f" {total:.2f}x: sorting "

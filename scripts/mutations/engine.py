@@ -254,6 +254,12 @@ ENGINE = (
              "                                       RAY_RECORD_BYTES if kernels == 1 else 0)\n",
              "                                       0)\n",
              ("tests/tools/test_locality.py::test_between_step_bytes_are_what_the_kernel_stored[layer_sorted]",)),
+    Mutation("verdict_hides_setup", "the locality verdict's sentence leaves the set-up out of what its total "
+             "counts (PERFORMANCE.md entry 62)",
+             "layerbvh/locality_verdict.py",
+             "if s.setup_bytes_per_ray is None or p.setup_bytes_per_ray is None else",
+             "if True else",
+             ("tests/tools/test_locality.py::test_first_step_reads_no_state_record",)),
     Mutation("state_records_read_in_lane_order", "the next step reads the state records in the order the step "
              "before wrote them, not through the sort's permutation (issue 40: nothing else permutes the states)",
              "layerbvh/wavefront.py",

@@ -54,7 +54,7 @@ def test_first_step_reads_no_state_record(procedural):
     tmax = np.random.default_rng(3).uniform(0.0, 1.0, n).astype(np.float32) * np.ptp(v, 0).max()
     bvh = layerbvh.build(v, f, branching=4, treelet_height=4, batch_rays=n, tail_rays=0, tail_fraction=1e-6,
                          tail_steps=2)
-    seg = preset("gtx965m").segment_bytes
+    seg, got = preset("gtx965m").segment_bytes, {}
     for mode in ("layer_sorted", "layer_unsorted"):
         rep = L.replay_tree(bvh, o, d, tmax, mode, False, 32, preset("gtx965m"))
         chk = L.check_trace(bvh, o, d, tmax, False, rep)
@@ -71,8 +71,11 @@ def test_first_step_reads_no_state_record(procedural):
         r = L.row("incoherent", rep, 4)
         parts = r.dram_bytes_per_ray + r.sort_bytes_per_ray + r.result_bytes_per_ray + r.setup_bytes_per_ray
         assert r.setup_bytes_per_ray == 21 and r.total_dram_bytes_per_ray == pytest.approx(parts, rel=1e-12)
+        got[mode] = r
     per = L.row("incoherent", L.replay_tree(bvh, o, d, tmax, "per_ray", False, 32, preset("gtx965m")), 4)
     assert per.setup_bytes_per_ray == 21
+    (sentence,) = L.verdict([per, got["layer_sorted"]])  # (the total it states counts the set-up, and says so)
+    assert "moved between steps, the hits written and the set-up's passes (21 B/ray against per_ray's 21)" in sentence
 
 
 @pytest.mark.parametrize("mesh_name", ["bunny", "procedural"])
