@@ -349,6 +349,7 @@ def verdicts(rows: list[dict]) -> list[dict]:
 # -- BENCHMARKS.md ------------------------------------------------------------------------------------------
 def section(docs: list[dict]) -> str:
     from layerbvh import LocalityRow  # (the step cap of documents that do not record it: LocalityRow's default)
+    from layerbvh_mitsuba.tools.bench.locality import steps_text
     parts = ["## The model against valgrind's cache simulator (`scripts/check_model_cachegrind.py`)", "",
              "Read misses per ray of the real LLVM kernels under valgrind's cache simulator (callgrind "
              "`--cache-sim=yes`, the simulator of cachegrind), beside the locality "
@@ -359,7 +360,7 @@ def section(docs: list[dict]) -> str:
     for doc in docs:
         parts += [f"### {Path(doc['mesh']).name} ({doc['triangles']:,} triangles), {doc['rays']:,} rays, "
                   f"K={doc['branching']}, H={doc['treelet_height']}, the layer modes' tail after "
-                  f"{doc.get('tail_steps', LocalityRow.tail_steps)} steps at most, {doc['lanes']} lanes", "",
+                  f"{steps_text(doc.get('tail_steps', LocalityRow.tail_steps))} at most, {doc['lanes']} lanes", "",
                   f"`{doc['command']}`", "",
                   "| D1 | level | mode | model read misses/ray | valgrind read misses/ray | model ÷ valgrind | "
                   "model write misses/ray | valgrind write misses/ray | hits equal |",

@@ -161,9 +161,13 @@ def measure_scene(mi, req: LocalityRequest, progress: bool = True) -> dict:
     return doc
 
 
+def steps_text(k: int) -> str:
+    """'1 step', 'k steps': a step cap as the sections write it."""
+    return f"{k} step" + ("" if k == 1 else "s")
+
+
 def machine() -> dict:
     """Where the model ran (its numbers do not depend on it, its run time and the cpu preset do)."""
-
     return {"cpu": cpu_model(), "cores": os.cpu_count(), "llvm_vector_width": llvm_vector_width()}
 
 
@@ -278,7 +282,8 @@ def benchmarks_section(doc: dict, fig_rel: str) -> str:
         parts += [f"### {scene} ({info['triangles']:,} triangles)", "",
                   f"Rays recorded at {info['resolution'][0]}x{info['resolution'][1]}, {info['spp']} spp: {kinds}"
                   + (f", each sampled to at most {info['sampled']:,}" if info.get("sampled") else "")
-                  + f"; the layer modes' tail after {info.get('tail_steps', LocalityRow.tail_steps)} steps at most. "
+                  + "; the layer modes' tail after "
+                  + f"{steps_text(info.get('tail_steps', LocalityRow.tail_steps))} at most. "
                   + "Trace "
                   + ("checked against the kernel: every ray's hit, work counts and loads of each kind equal."
                      if exact else "check FAILED on some rays: see the run's summary.md."), ""]

@@ -165,7 +165,8 @@ def merge_locality(out: Path, points, results, command: str) -> None:
               "preset_lines": list(dict.fromkeys(line for _, d in docs for line in d["preset_lines"])),
               "scenes": {}, "machine": docs[0][1].get("machine")}
     for p, d in docs:  # one point per kind: a scene's kinds come from several points
-        info = merged["scenes"].setdefault(scene(p), {k: d[k] for k in ("resolution", "spp", "triangles", "sampled")})
+        info = merged["scenes"].setdefault(scene(p), {k: d[k] for k in ("resolution", "spp", "triangles", "sampled")}
+                                           | ({"tail_steps": d["tail_steps"]} if "tail_steps" in d else {}))
         info.setdefault("kinds", {}).update(d["kinds"])
     atomic.write_text(out / "locality.json", json.dumps(merged, indent=1))
 
