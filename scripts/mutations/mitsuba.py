@@ -480,4 +480,9 @@ MITSUBA = (
              "    if mde is None:\n        return run_one(",
              "    if True:\n        return run_one(",
              ("tests/tools/test_verdict.py::test_a_check_asked_for_an_mde_takes_the_samples_it_needs",)),
+    Mutation("sweep_dashboard_on_8787", "a sweep's local Dask scheduler binds the default dashboard port, and "
+             "warns on stderr when another sweep holds it",
+             "plugin/tools/sweep/runner.py",
+             '"dashboard_address": ":0"}}', '"dashboard_address": None}}',
+             ("tests/tools/test_sweep.py::test_sigterm_stops_a_sweep_as_ctrl_c_does",)),
 )

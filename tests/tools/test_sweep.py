@@ -145,9 +145,18 @@ def test_failures_are_rows_and_an_external_scheduler_runs_the_points(tmp_path):
 def test_sigterm_stops_a_sweep_as_ctrl_c_does(tmp_path):
     """Issue 56: SIGTERM (a scheduler's stop, `kill`) killed the sweep outright: stored rows were
     kept, but its Dask processes left "leaked semaphore objects" warnings. Now it stops as on
-    Ctrl-C: the stored point kept and in the tables, one line, exit 143, no process left behind."""
+    Ctrl-C: the stored point kept and in the tables, one line, exit 143, no process left behind.
+    Dask's default dashboard port is held meanwhile, as another sweep running beside this one would
+    hold it: the sweep's own cluster must not warn that it is taken (it did: dashboard_address)."""
     import psutil
+    import socket
     out = tmp_path / "sw"
+    beside = socket.socket()
+    try:
+        beside.bind(("127.0.0.1", 8787))
+        beside.listen()
+    except OSError:  # (already held: by another sweep, the same test's condition)
+        pass
     p = subprocess.Popen([sys.executable, "-m", "layerbvh_mitsuba.cli", "sweep", str(SCENES / "cbox.xml"), "--job",
                           "compare", "--traversal", "per_ray,layer_sorted,layer_unsorted", *TINY, "--workers", "1",
                           "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -163,6 +172,7 @@ def test_sigterm_stops_a_sweep_as_ctrl_c_does(tmp_path):
     assert stored >= 1 and len([r for r in _rows(out) if r["status"] == "ok"]) == stored
     gone, alive = psutil.wait_procs(children, timeout=30)
     assert not alive, [c.cmdline() for c in alive]
+    beside.close()
 
 
 def test_a_point_over_its_memory_limit_is_killed_and_recorded():

@@ -154,8 +154,10 @@ def local_cluster(n: int):
     opts = {"host": LOOPBACK, "nthreads": 1, "memory_limit": 0, "dashboard": False, "silence_logs": logging.ERROR}
     workers = {f"point-worker-{i}": {"cls": Nanny, "options": {**opts, "resources": {EXCLUSIVE: 1} if i == 0 else {}}}
                for i in range(n)}
+    # (dashboard_address ":0": None still binds Dask's default 8787, and a second sweep running
+    # beside the first then warned on stderr that the port was taken, measured)
     scheduler = {"cls": Scheduler, "options": {"host": LOOPBACK, "port": 0, "dashboard": False,
-                                               "dashboard_address": None}}
+                                               "dashboard_address": ":0"}}
     return SpecCluster(scheduler=scheduler, workers=workers, silence_logs=logging.ERROR, name="layerbvh-sweep")
 
 
