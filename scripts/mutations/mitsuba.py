@@ -485,4 +485,8 @@ MITSUBA = (
              "plugin/tools/sweep/runner.py",
              '"dashboard_address": ":0"}}', '"dashboard_address": None}}',
              ("tests/tools/test_sweep.py::test_sigterm_stops_a_sweep_as_ctrl_c_does",)),
+    Mutation("locality_section_forgets_step_cap", "BENCHMARKS.md's locality section of a `layerbvh locality` run "
+             "drops the run's step cap and states the old default's 32 steps",
+             "plugin/tools/bench/locality.py", '"kinds", "sampled", "tail_steps")', '"kinds", "sampled")',
+             ("tests/tools/test_locality.py::test_locality_command",)),
 )

@@ -319,6 +319,8 @@ def test_locality_command(tmp_path):
     # --tail-steps reaches the build the kernel check traces and the replay (one step, then the tail).
     assert doc["tail_steps"] == 1 and {r["tail_steps"] for r in rows} == {1}
     assert max(r["kernels"] for r in rows) <= 2
+    from layerbvh_mitsuba.tools.bench.locality import benchmarks_section, merge_documents
+    assert "the layer modes' tail after 1 step at most." in benchmarks_section(merge_documents([doc]), "figs")
     need = ("kind", "mode", "warp", "preset", "rays", "inner_per_ray", "tris_per_ray", "transactions_per_ray",
             "simd_efficiency", "l1_hit_rate", "l2_hit_rate", "l2_bytes_per_ray", "dram_bytes_per_ray",
             "sort_bytes_per_ray")

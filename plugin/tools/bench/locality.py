@@ -47,7 +47,6 @@ ANY_HIT_KINDS = ("shadow",)
 @dataclass(frozen=True)
 class LocalityRequest:
     """What `layerbvh locality` (and the sweep's locality job) runs on one scene, parsed once."""
-
     scene: str
     res: tuple | None
     spp: int
@@ -314,7 +313,8 @@ def merge_documents(docs: list) -> dict:
             name = _slug(d["scene"])
             d = {**d, "results": [{**r, "scene": name} for r in d["results"]],
                  "checks": [{**c, "scene": name} for c in d["checks"]],
-                 "scenes": {name: {k: d[k] for k in ("resolution", "spp", "triangles", "kinds", "sampled")}}}
+                 "scenes": {name: {k: d[k] for k in ("resolution", "spp", "triangles", "kinds", "sampled", "tail_steps")
+                                   if k in d}}}
         for r in d["results"]:
             key = tuple(r.get(k, 2) if k == "branching" else r[k]
                         for k in ("scene", "kind", "mode", "warp", "preset", "treelet_height", "branching"))
