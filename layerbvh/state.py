@@ -138,8 +138,6 @@ class StateRecords:
     store per lane, coalesced), and the next step reads each of its rays' with one gather by the
     sort's permutation, so nothing permutes the states in between (issue 40)."""
 
-    FIELDS = LEAN_STATE + ("inst", "hit_inst")
-
     @staticmethod
     def words(instanced: bool, rows: int, n: int) -> int:
         """The words of a record for a trace of `n` rays with `rows` entry-stack rows per ray: the

@@ -20,11 +20,6 @@ from layerbvh_mitsuba.repo import ROOT
 
 DEFAULT_STEPS = (1, 2, 3, 4, 8, 32)  # (32: the cap before entry 61, where the rays-left rule ends most batches)
 SECTION = "tail_cutoff"  # BENCHMARKS.md's section, generated from the JSON (--benchmarks)
-# What a point keeps of a model row (the rest: LocalityRow's other fields, in locality.json).
-MODEL_FIELDS = ("rays", "total_dram_bytes_per_ray", "dram_bytes_per_ray", "node_dram_bytes_per_ray",
-                "triangle_dram_bytes_per_ray", "sort_bytes_per_ray", "result_bytes_per_ray", "steps_per_ray",
-                "kernels", "sort_bytes_per_ray_step", "break_even_bytes_per_ray_step",
-                "lower_bound_bytes_per_ray_step", "simd_efficiency", "trace_exact")
 
 
 def parse_args(argv=None):
