@@ -138,8 +138,10 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
         first_start = [("ray_0", 4, ms.BY_SLOT), ("idx", 4, ms.BY_LANE), ("node_treelet", 4, ms.BY_NONE),
                        ("tmax", 4, ms.BY_SLOT)] + [(f"ray_{k}", 4, ms.BY_SLOT) for k in range(1, 6)]
     else:
+        # per_ray's kernel reads each lane's slot (the valid rays' indices, by lane: its "state" load,
+        # as in the layer modes' first step), then its ray and tmax by slot.
         sizes.update({f"ray_{k}": n_all * 4 for k in range(PER_RAY_LOADS)})
-        start = [(f"ray_{k}", 4, ms.BY_SLOT) for k in range(PER_RAY_LOADS)]
+        start = [(f"ray_{k}", 4, ms.BY_SLOT) for k in range(PER_RAY_LOADS)] + [("idx", 4, ms.BY_LANE)]
     base = _regions(sizes)
     site_base = np.zeros(ms.SITES, np.int64)
     site_bytes = np.ones(ms.SITES, np.int64)
@@ -250,7 +252,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
         ("steps", ms.I_STEPS), ("entries_written", ms.I_SPILL), ("hits_written", ms.I_HITW))}
     kinds = {kind: sites for kind, (sites, _) in ms.LOAD_KINDS.items()}
     kinds["ray"] = tuple(ms.S_START + k for k in ((0,) if layer else range(PER_RAY_LOADS)))
-    kinds["state"] = (ms.S_START + 1,) if layer else ()
+    kinds["state"] = (ms.S_START + (1 if layer else PER_RAY_LOADS),)
     per_kind = {kind: [loads[:, k] for k in sites] for kind, sites in kinds.items() if sites}
     # (a kind's sites are loaded together, so each counts its loads once; replay() checks they agree)
     assert all((c == cs[0]).all() for cs in per_kind.values() for c in cs), "a load kind's sites disagree"

@@ -230,6 +230,12 @@ ENGINE = (
              '        passes += [("state_records", record_bytes * n, True)]\n        first_start = start\n'
              '        prev_pos[order] = np.arange(n)\n        first = use(first_start)\n',
              ("tests/tools/test_locality.py::test_first_step_reads_no_state_record",)),
+    Mutation("per_ray_model_skips_its_slot_read", "the locality replay's per_ray kernel does not read its lanes' "
+             "slots (the valid rays' indices), which the layer modes' first step reads: a bias against sorting",
+             "layerbvh/locality.py",
+             ' + [("idx", 4, ms.BY_LANE)]\n',
+             "\n",
+             ("tests/tools/test_locality.py::test_first_step_reads_no_state_record",)),
     Mutation("total_leaves_out_setup", "the locality model's total leaves out the trace call's set-up passes "
              "(the layer modes' ray-record packing: 56 B a ray that per_ray does not move)",
              "layerbvh/locality.py",

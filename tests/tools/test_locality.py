@@ -72,7 +72,10 @@ def test_first_step_reads_no_state_record(procedural):
         parts = r.dram_bytes_per_ray + r.sort_bytes_per_ray + r.result_bytes_per_ray + r.setup_bytes_per_ray
         assert r.setup_bytes_per_ray == 21 and r.total_dram_bytes_per_ray == pytest.approx(parts, rel=1e-12)
         got[mode] = r
-    per = L.row("incoherent", L.replay_tree(bvh, o, d, tmax, "per_ray", False, 32, preset("gtx965m")), 4)
+    per_rep = L.replay_tree(bvh, o, d, tmax, "per_ray", False, 32, preset("gtx965m"))
+    # per_ray's kernel reads each lane's slot too (the valid rays' indices): one load a ray, as the first step's.
+    assert per_rep.tally[ms.S_START + L.PER_RAY_LOADS, 1] == n and per_rep.loads["state"].sum() == n
+    per = L.row("incoherent", per_rep, 4)
     assert per.setup_bytes_per_ray == 21
     (sentence,) = L.verdict([per, got["layer_sorted"]])  # (the total it states counts the set-up, and says so)
     assert "moved between steps, the hits written and the set-up's passes (21 B/ray against per_ray's 21)" in sentence
@@ -179,7 +182,8 @@ def test_two_warps_transactions_by_hand():
     """Two warps of 4 lanes on one unit, one at a time, fully associative caches: warp 0's rays
     hit triangle A, warp 1's triangle B, so each lane reads the root (iteration 1) and its triangle
     (iteration 2). Counted by hand per warp: 7 ray loads (o, d, tmax: 16 consecutive bytes, one
-    32-byte sector each), the root record (64 bytes: 2 sectors), the triangle record (2), and the
+    32-byte sector each), its lanes' slots (the valid rays' indices: one sector, which the set-up
+    wrote, so in L1), the root record (64 bytes: 2 sectors), the triangle record (2), and the
     local entry stack's read and write (link and t) in both iterations (4 lanes x 4 bytes: one
     sector each; 8). Warp 1 finds its rays, the root and the local stack in L1."""
     v, f = _two_triangles()
@@ -198,13 +202,13 @@ def test_two_warps_transactions_by_hand():
     tx = rep.tally[:, 0]
     assert tx[ms.S_NODE] == 4 and tx[ms.S_TRI] == 4
     assert sum(tx[s] for s in ms.CATEGORY["local"]) == 16
-    assert tx[ms.S_START:ms.S_END].sum() == 14
-    assert tx[:ms.S_END].sum() == 38
+    assert tx[ms.S_START:ms.S_END].sum() == 16 and list(rep.levels_hit[ms.S_START + L.PER_RAY_LOADS]) == [2, 0, 0]
+    assert tx[:ms.S_END].sum() == 40
     assert rep.warp_iterations == 4 and rep.lane_iterations == 16
     # Warp 0 brings in 13 sectors (7 ray, 2 node, 2 local, 2 triangle) and re-reads the local ones
-    # (6 L1 hits); warp 1 misses only on triangle B (2) and hits the other 17.
+    # (6 L1 hits, and its slots: 7); warp 1 misses only on triangle B (2) and hits the other 18.
     lh = rep.levels_hit[:ms.S_END]
-    assert lh[:, 0].sum() == 23 and lh[:, 1].sum() == 0 and lh[:, 2].sum() == 15
+    assert lh[:, 0].sum() == 25 and lh[:, 1].sum() == 0 and lh[:, 2].sum() == 15
     # Before the kernel, the trace call reads the valid mask (8 bytes: one sector) and writes the
     # valid rays' indices (32 bytes: one) and fills the four result arrays (one sector each): six
     # set-up transactions, every one a miss in both levels (its stores write misses). As its rays
@@ -217,8 +221,8 @@ def test_two_warps_transactions_by_hand():
     assert list(tx[results]) == [2, 2, 2, 2] and tx[ms.S_END:ms.S_SETUP_LOAD].sum() == 8
     assert list(rep.levels_hit[results].sum(axis=0)) == [8, 0, 0] and rep.write_misses == (5, 5)
     r = L.row("hand", rep, 8)
-    assert r.simd_efficiency == 1.0 and r.transactions_per_ray == 38 / 8
-    assert r.dram_bytes_per_ray == 15 * 32 / 8 and r.l1_hit_rate == 23 / 38
+    assert r.simd_efficiency == 1.0 and r.transactions_per_ray == 40 / 8
+    assert r.dram_bytes_per_ray == 15 * 32 / 8 and r.l1_hit_rate == 25 / 40
 
 
 def test_the_replays_stores_are_the_cache_models_write_misses(bunny):
