@@ -79,9 +79,10 @@ def valid_rays(o: np.ndarray, d: np.ndarray, tmax: np.ndarray) -> np.ndarray:
 
 def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, preset: Preset,
            tail_rays: int = TAIL_RAYS, tail_fraction: float = TAIL_FRACTION,
-           tail_steps: int = TAIL_STEPS) -> ReplayResult:
+           tail_steps: int = TAIL_STEPS, frame_bytes: int = 0) -> ReplayResult:
     """Trace the rays (numpy (N, 3), (N, 3), (N,)) in `mode` as wavefront.trace schedules them,
-    with `warp` lanes per warp (packet) on `preset`'s units and caches."""
+    with `warp` lanes per warp (packet) on `preset`'s units and caches (and, on a CPU, each packet
+    iteration reading and writing a stack frame of `frame_bytes`: memsites.S_FRAME_READ)."""
     if mode not in MODES:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     t0 = time.perf_counter()
@@ -110,10 +111,11 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     g_t = np.zeros((n_all if layer else 1, cap_g), np.float32)
 
     local_words = lanes_held * (cap_max + 1)
+    sizes_frame = {"frame": preset.units * preset.resident_warps * frame_bytes}
     sizes = {"nodes": lay.nodes.nbytes, "tris": lay.tris.nbytes, "treelet_first": lay.treelet_first.nbytes,
              "node_treelet": lay.node_treelet.nbytes, "stack_link": n_all * cap_g * 4, "stack_t": n_all * cap_g * 4,
              "local_link": local_words * 4, "local_t": local_words * 4,
-             **{region: n_all * 4 for _, region in RESULT_REGIONS}, "valid": n_all, "idx": n_all * 4}
+             **{region: n_all * 4 for _, region in RESULT_REGIONS}, "valid": n_all, "idx": n_all * 4, **sizes_frame}
     # The state record's format, as wavefront.trace picks it (the replay flattens instances).
     record_bytes = 4 * StateRecords.words(False, cap_g, n_all)
     compact = record_bytes == 4 * COMPACT_RECORD_WORDS
@@ -153,6 +155,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
             (ms.S_TF, "treelet_first", 4, False), (ms.S_NODE, "nodes", node_format(lay.branching).bytes, False),
             (ms.S_LOC_W_LINK, "local_link", 4, True), (ms.S_LOC_W_T, "local_t", 4, True)):
         site_base[site], site_bytes[site], site_local[site] = base[region], nbytes, local
+    site_base[ms.S_FRAME_READ], site_bytes[ms.S_FRAME_READ] = base["frame"], frame_bytes
     for j in range(1, ms.MAX_PUSH):  # a wide node's further pushes (local, like the first)
         for site, region in zip((ms.S_PUSH + 2 * (j - 1), ms.S_PUSH + 2 * (j - 1) + 1), ("local_link", "local_t")):
             site_base[site], site_bytes[site], site_local[site] = base[region], 4, True
@@ -334,11 +337,11 @@ class LocalityRow:
         return asdict(self)
 
 
-def replay_tree(bvh, o, d, tmax, mode: str, any_hit: bool, warp: int, preset: Preset) -> ReplayResult:
+def replay_tree(bvh, o, d, tmax, mode: str, any_hit: bool, warp: int, preset: Preset, frame_bytes=0) -> ReplayResult:
     """`replay` over a LayerBVH's layout with its own tail rule (tail_rays, tail_fraction,
     tail_steps): the schedule its kernels run."""
     return replay(bvh.layout, o, d, tmax, mode, any_hit, warp, preset, bvh.tail_rays, bvh.tail_fraction,
-                  bvh.tail_steps)
+                  bvh.tail_steps, frame_bytes)
 
 
 def row(kind: str, rep: ReplayResult, treelet_height: int, sampled_from: int | None = None,

@@ -48,7 +48,11 @@ S_END = S_START + 10
 # The trace call's own passes before its first kernel (memstores.setup_passes): what they read and
 # what they write.
 S_SETUP_LOAD, S_SETUP_STORE = S_END + 9, S_END + 10
-SITES = S_END + 11
+# A CPU kernel's stack frame (the registers LLVM spills, beside the local arrays the local sites
+# model): `site_bytes[S_FRAME_READ]` bytes per packet slot, read and written once a packet
+# iteration (0: none, as on a GPU, where they stay in registers).
+S_FRAME_READ, S_FRAME_WRITE = S_END + 11, S_END + 12
+SITES = S_END + 13
 # A launch, as memtrace.run_kernel's `bounded` takes it: a walk to the end (per_ray, the tail), a
 # wavefront step, or the first step (which also writes the ray records).
 WHOLE, STEP, FIRST_STEP = 0, 1, 2
@@ -60,13 +64,13 @@ CATEGORY = {"node": (S_NODE, S_NODE_TRELET, S_TF), "triangle": (S_TRI,), "stack"
             "local": (S_LOC_R_LINK, S_LOC_R_T, S_LOC_W_LINK, S_LOC_W_T) + tuple(range(S_PUSH, S_START)),
             "results": (S_RES_T, S_RES_PRIM, S_RES_U, S_RES_V),
             "step out": (S_KEY_OUT, S_STATE_OUT, S_SPILL_LINK, S_SPILL_T, S_RAY_OUT),
-            "set-up": (S_SETUP_LOAD, S_SETUP_STORE)}
+            "set-up": (S_SETUP_LOAD, S_SETUP_STORE), "frame": (S_FRAME_READ, S_FRAME_WRITE)}
 # ... and the start sites are "ray". The local write sites and the sites from S_END on are the
 # replay's stores (the cache model's write-allocate and write-back, cachesim.py); every other site
 # loads. The sites before S_END are the traversal's own traffic (its transactions and DRAM bytes);
 # from S_END on, what the kernels write out, which the between-step bytes (steptraffic) count.
 STORE_SITES = (S_LOC_W_LINK, S_LOC_W_T) + tuple(range(S_PUSH, S_START)) + tuple(range(S_END, S_SETUP_LOAD)) + (
-    S_SETUP_STORE,)
+    S_SETUP_STORE, S_FRAME_WRITE)
 # The kernel's loads by kind: the replay's load sites of each, and the work counter the kernel
 # keeps of it (state.WORK); besides these, each kernel a ray takes part in ("steps") loads its ray
 # (and in a wavefront step its state record) once.

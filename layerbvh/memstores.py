@@ -6,8 +6,8 @@ import numba
 
 from . import cachesim, memsites, numba_cache
 from .cachesim import cache_access, coalesce
-from .memsites import (FIRST_STEP, I_DONE, I_HITS, I_NL, I_SP, NO_READ, S_END, S_KEY_OUT, S_RAY_OUT, S_RES_T, S_RES_V,
-                       S_SPILL_LINK, S_SPILL_T, S_STATE_OUT, SITES)
+from .memsites import (FIRST_STEP, I_DONE, I_HITS, I_NL, I_SP, NO_READ, S_END, S_FRAME_READ, S_FRAME_WRITE, S_KEY_OUT,
+                       S_RAY_OUT, S_RES_T, S_RES_V, S_SPILL_LINK, S_SPILL_T, S_STATE_OUT, SITES)
 
 # What the kernels do (walk.walk, wavefront._step/_tail): per_ray's kernel writes every ray's hit
 # (or miss) by slot as the ray ends (Results.write); a step and the tail write each closer hit by
@@ -80,6 +80,18 @@ def setup_pass(site, base, nbytes, write, seg_bytes, unit, tags, stamps, dirty, 
         tally[site, 0] += 1
         tally[site, 1] += 1
         levels_hit[site, min(lvl, n_levels)] += 1
+
+
+@numba.njit(cache=True)
+def frame_pass(slot_id, site_base, site_bytes, seg_bytes, unit, tags, stamps, dirty, params, counts, clock, tally,
+               levels_hit):
+    """A packet iteration's stack frame (memsites.S_FRAME_READ) in the packet slot `slot_id`: the
+    registers it spills written, then read back, one access per segment (none where it is 0 bytes)."""
+    nbytes = site_bytes[S_FRAME_READ]
+    if nbytes > 0:
+        for site, write in ((S_FRAME_WRITE, True), (S_FRAME_READ, False)):
+            setup_pass(site, site_base[S_FRAME_READ] + slot_id * nbytes, nbytes, write, seg_bytes, unit, tags, stamps,
+                       dirty, params, counts, clock, tally, levels_hit)
 
 
 numba_cache.follow(globals(), cachesim, memsites)  # what these compile in (numba_cache)

@@ -8,8 +8,7 @@ from __future__ import annotations
 # LLVM backend reproduces bit for bit (measured: dr.rcp is an exact division there and products are
 # not contracted into FMAs), so its visit order is the kernel's. locality.check_trace proves it per
 # ray: hits (prim, t bits) and the work counters (inner nodes, leaves, triangles, iterations, steps)
-# equal what the kernel returned. On CUDA, rcp is approximate, so rare rays may take another order;
-# the check says how many.
+# equal what the kernel returned. On CUDA, rcp is approximate: rare rays may take another order (counted).
 #
 # What one lane-iteration can read, in walk's order (each a separate load instruction, "site"):
 # a triangle record, its local entry-stack slot, a global entry-stack entry (two arrays), a node's
@@ -369,15 +368,14 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
                site_base, site_bytes, site_local, start_sites, start_by_pos, prev_pos, seg_bytes,
                tags, stamps, dirty, params, counts, clock, tally, levels_hit, lanes_out, loads):
     """One kernel launch over the rays `order` (slots, in the launch's order), lane j in warp j // W.
-
     Warps go to units (SMs, cores) a block of `block_warps` at a time, round-robin; each unit keeps
     `resident` warps and runs them round-robin, one loop iteration per turn; units take turns too, so
     the shared cache level sees their requests interleaved. Every warp-iteration's loads are coalesced
-    per site into segments (transactions), and each transaction is one access to the cache model.
-    tally[site] += (transactions, lane requests); levels_hit[site, level] += transactions served by
-    that level (last column: DRAM); lanes_out += (warp-iterations, active lane-iterations, entries
-    written back, closer hits found). In a bounded step (a wavefront step) the entries each ray
-    that goes on still holds are written back to its global stack when its lane ends (walk's spill)."""
+    per site into segments (transactions), each one access to the cache model (then, on a CPU, its
+    stack frame: memstores.frame_pass). tally[site] += (transactions, lane requests); levels_hit[site,
+    level] += transactions served by that level (last column: DRAM); lanes_out += (warp-iterations,
+    active lane-iterations, entries written back, closer hits found). In a bounded step the entries a
+    ray that goes on still holds go to its global stack when its lane ends (walk's spill)."""
     n = len(order)
     n_warps = (n + W - 1) // W
     # Each unit's warps, in launch order.
@@ -477,6 +475,8 @@ def run_kernel(order, W, units, resident, block_warps, bounded, use_global, cap,
                         lvl = cache_access(tags, stamps, dirty, params, counts, clock, u, segs[i] * seg_bytes,
                                            store)
                         levels_hit[k, min(lvl, n_levels)] += 1
+                memstores.frame_pass(slot_id, site_base, site_bytes, seg_bytes, u, tags, stamps, dirty, params, counts,
+                                     clock, tally, levels_hit)
                 still = going > 0
                 if not still:
                     res_warp[u, r] = -1

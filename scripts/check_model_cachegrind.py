@@ -66,8 +66,10 @@ BLIND_SPOTS = (
     "and the trace call's passes before its first kernel (the valid rays' compaction, the results' fill; "
     "before PERFORMANCE.md entries 62 and 63 also the packing of every ray's state and ray records): the "
     "sort and compaction between steps and the "
-    "host's work are not in its misses (the layer modes' `sort_bytes` stand for them elsewhere), nor "
-    "are the kernels' stack frames (register spills: scripts/kernel_frame.py); valgrind counts every "
+    "host's work are not in its misses (the layer modes' `sort_bytes` stand for them elsewhere). The "
+    "kernels' stack frames (register spills) are, where llc 19 is installed: each packet iteration "
+    "writes, then reads, the frame lines its kernel's spills and reloads touch (scripts/kernel_frame.py; "
+    "in the kernel they interleave with the loads); valgrind counts every "
     "read and write the trace call makes. Valgrind's own simplifications: an inclusive LL, LRU "
     "everywhere, no prefetching, no TLB, and one cache for all threads (the children run one Dr.Jit "
     "thread). Read misses (D1mr, DLmr) are held against the model's loads that miss L1 and L2, write "
@@ -237,15 +239,15 @@ def model_preset(d1_kib: int, ll_kib: int, lanes: int):
         flush_private_each_kernel=False, source="set to the geometry given to cachegrind (check_model_cachegrind.py)")
 
 
-def model_misses(bvh, o, d, n: int, mode: str, pre) -> dict:
+def model_misses(bvh, o, d, n: int, mode: str, pre, frame_bytes: int = 0) -> dict:
     """The model's L1 and L2 (last-level) misses per ray of rays n..2n, as valgrind's are taken,
-    in total and per kind of load (memtrace.CATEGORY: nodes, triangles, stacks, ray and state
-    records)."""
+    in total and per kind of load (memtrace.CATEGORY: nodes, triangles, stacks, the kernels' stack
+    frames of `frame_bytes` each, ray and state records)."""
     from layerbvh import memsites as ms
     from layerbvh import replay_tree
     got = {}
     for k in (n, 2 * n):
-        rep = replay_tree(bvh, o[:k], d[:k], np.full(k, np.inf, np.float32), mode, False, pre.warp, pre)
+        rep = replay_tree(bvh, o[:k], d[:k], np.full(k, np.inf, np.float32), mode, False, pre.warp, pre, frame_bytes)
         lh = rep.levels_hit  # [site, level]: transactions served there (last column: below the last level)
         miss_l1 = lh.sum(axis=1) - lh[:, 0]
         got[k] = (miss_l1, lh[:, -1], rep.prim, rep.sort_bytes)
@@ -264,6 +266,24 @@ def model_misses(bvh, o, d, n: int, mode: str, pre) -> dict:
             "LL_writes": per_ray(1, stores), "parts": parts, "prim": got[2 * n][2],
             # what the model's formula (locality.sort_traffic) says the steps move between them, in lines
             "between_steps_lines": (got[2 * n][3] - got[n][3]) / n / LINE}
+
+
+def kernel_frames(bvh, o, d, modes) -> dict:
+    """Per mode, the stack-frame bytes a packet iteration touches (the spill lines of its kernels,
+    scripts/kernel_frame.py: llc's assembly of the IR this process compiles), and the kernels'
+    lanes: the model takes them where valgrind's children run as many lanes (an AVX-512 host's
+    kernels are not the ones valgrind runs). {} without llc 19 (the frames then left out)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import kernel_frame
+    import layerbvh
+    llc = kernel_frame.find_llc()
+    if llc is None:
+        print("check_model_cachegrind: llc 19 is missing (Debian: apt-get install llvm-19): the model leaves "
+              "out the kernels' stack frames", flush=True)
+        return {}
+    frames = kernel_frame.spill_bytes_by_mode(kernel_frame.kernel_rows(bvh, o, d, modes, llc))
+    print(f"kernel stack frames (spill lines a packet iteration touches): {frames}", flush=True)
+    return {**frames, "lanes": layerbvh.llvm_vector_width()}
 
 
 def load_mesh(spec: str):
@@ -289,6 +309,7 @@ def check(args) -> dict:
     np.savez(work / "rays.npz", o=o, d=d)
     print(f"{args.mesh}: {len(f):,} triangles, K={args.branching}, H={args.height}; {n:,} incoherent rays",
           flush=True)
+    frames = kernel_frames(bvh, o[:n], d[:n], args.modes)
     rows, lanes = [], None
     for d1 in args.d1:
         t0 = time.perf_counter()
@@ -296,7 +317,8 @@ def check(args) -> dict:
         lanes = cgs["lanes"]  # Dr.Jit's packet width under valgrind (8: no AVX-512 there)
         pre = model_preset(d1, args.ll, lanes)
         for mode in args.modes:
-            cg, mo = cgs[mode], model_misses(bvh, o, d, n, mode, pre)
+            fb = frames.get(mode, 0) if frames.get("lanes") == lanes else 0
+            cg, mo = cgs[mode], model_misses(bvh, o, d, n, mode, pre, fb)
             exact = bool(np.array_equal(cg["prim"], mo["prim"]))
             for level in ("D1", "LL"):
                 rows.append({"mode": mode, "level": level, "d1_kib": d1, "ll_kib": args.ll,
@@ -305,7 +327,7 @@ def check(args) -> dict:
                              "model_write_misses_per_ray": mo[f"{level}_writes"],
                              "instructions_per_ray": cg["instructions"], "model_parts": mo["parts"][level],
                              "model_between_steps_lines_per_ray": mo["between_steps_lines"],
-                             "hits_equal": exact, "attempts": cgs["attempts"]})
+                             "hits_equal": exact, "attempts": cgs["attempts"], "model_frame_bytes": fb})
             print(f"  D1 {d1:3} KiB {mode:15} read misses/ray, D1: model {mo['D1']:6.2f}, valgrind {cg['D1']:6.2f} "
                   f"(write misses: model {mo['D1_writes']:.2f}, valgrind {cg['D1_writes']:.2f}; model's between-step "
                   f"estimate {mo['between_steps_lines']:.2f} lines); "

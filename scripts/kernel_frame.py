@@ -41,35 +41,33 @@ def frame(ir: str, llc: str, cpu: str) -> dict:
     subs = [int(x) for x in re.findall(r"subq\s+\$(\d+),\s*%rsp", asm)]
     allocas = sum(int(n) * (4 if t in ("float", "i32") else 8)
                   for t, n in re.findall(r"alloca (float|i32|i64|double), i32 (\d+)", ir))
+    # The frame's 64-byte lines that spills and reloads touch (`N(%rsp)` operands on llc's Spill and
+    # Reload lines, each access of the marked width): what a packet iteration reads and writes
+    # there besides the local arrays (the locality model's `frame_bytes`, memsites.S_FRAME_READ).
+    lines = set()
+    for m in re.finditer(r"(-?\d*)\(%rsp\)[^\n]*# (\d+)-byte (?:Folded )?(?:Spill|Reload)", asm):
+        off, size = int(m.group(1) or 0), int(m.group(2))
+        lines.update(range(off // 64, (off + size - 1) // 64 + 1))
     return {"frame_bytes": max(subs, default=0), "local_array_bytes": allocas,
-            "spill_stores": asm.count("Spill"), "reloads": asm.count("Reload")}
+            "spill_stores": asm.count("Spill"), "reloads": asm.count("Reload"), "spill_line_bytes": 64 * len(lines)}
 
 
-def main() -> int:
+def find_llc() -> str | None:
+    return next((x for x in LLC if shutil.which(x)), None)
+
+
+def kernel_rows(bvh, o, d, modes, llc: str, cpu: str = "native") -> list[dict]:
+    """One row per traversal kernel (ops >= 200, each once) that tracing `o`, `d` runs in each mode."""
     import drjit as dr
 
-    import layerbvh
     from layerbvh import backend as be, meshes, wavefront
     from layerbvh.inputs import ray_batch
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--mesh", default="scenes/meshes/bunny.ply")
-    p.add_argument("--rays", type=int, default=4000)
-    p.add_argument("--cpu", default="native", help="llc's -mcpu (default: the host)")
-    p.add_argument("--json", help="write the rows here")
-    args = p.parse_args()
-    llc = next((x for x in LLC if shutil.which(x)), None)
-    if llc is None:
-        print("kernel_frame: llc 19 is not installed (Debian: apt-get install llvm-19)", file=sys.stderr)
-        return 2
-    v, f = meshes.load_mesh(args.mesh)
-    bvh = layerbvh.build(v, f, backend="llvm")
     m = be.module("llvm")
     dev = bvh.layout.to_device(m)
-    o, d = meshes.incoherent_rays(v, args.rays, seed=0)
     rows = []
-    for mode in ("per_ray", "layer_sorted"):
+    for mode in modes:
         oo, dd = meshes.device_rays(m, o, d)
-        batch = ray_batch(m, "llvm", oo, dd, m.Float(np.full(args.rays, np.inf, np.float32)))
+        batch = ray_batch(m, "llvm", oo, dd, m.Float(np.full(len(o), np.inf, np.float32)))
         dr.eval(*batch.o, *batch.d, batch.tmax, batch.valid)
         was = dr.flag(dr.JitFlag.KernelHistory)
         dr.set_flag(dr.JitFlag.KernelHistory, True)
@@ -88,13 +86,42 @@ def main() -> int:
             if k["hash"] in seen or k["operation_count"] < 200:  # (the traversal kernels, once each)
                 continue
             seen.add(k["hash"])
-            row = {"mode": mode, "hash": k["hash"], "ops": k["operation_count"], "lanes": k["size"],
-                   **frame(k["ir"].getvalue(), llc, args.cpu)}
-            rows.append(row)
-            print(f"{mode:13} kernel {row['hash'][:8]} ({row['ops']} ops): "
-                  + (row["error"] if "error" in row else
-                     f"frame {row['frame_bytes']:,} B ({row['local_array_bytes']:,} B local entry stacks), "
-                     f"{row['spill_stores']} spill stores, {row['reloads']} reloads"))
+            rows.append({"mode": mode, "hash": k["hash"], "ops": k["operation_count"], "lanes": k["size"],
+                         **frame(k["ir"].getvalue(), llc, cpu)})
+    return rows
+
+
+def spill_bytes_by_mode(rows: list[dict]) -> dict:
+    """Per mode, the most spill-line bytes of its kernels (the locality model's `frame_bytes`)."""
+    out: dict = {}
+    for r in rows:
+        out[r["mode"]] = max(out.get(r["mode"], 0), r.get("spill_line_bytes", 0))
+    return out
+
+
+def main() -> int:
+    import layerbvh
+    from layerbvh import meshes
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--mesh", default="scenes/meshes/bunny.ply")
+    p.add_argument("--rays", type=int, default=4000)
+    p.add_argument("--cpu", default="native", help="llc's -mcpu (default: the host)")
+    p.add_argument("--json", help="write the rows here")
+    args = p.parse_args()
+    llc = find_llc()
+    if llc is None:
+        print("kernel_frame: llc 19 is not installed (Debian: apt-get install llvm-19)", file=sys.stderr)
+        return 2
+    v, f = meshes.load_mesh(args.mesh)
+    bvh = layerbvh.build(v, f, backend="llvm")
+    o, d = meshes.incoherent_rays(v, args.rays, seed=0)
+    rows = kernel_rows(bvh, o, d, ("per_ray", "layer_sorted"), llc, args.cpu)
+    for row in rows:
+        print(f"{row['mode']:13} kernel {row['hash'][:8]} ({row['ops']} ops): "
+              + (row["error"] if "error" in row else
+                 f"frame {row['frame_bytes']:,} B ({row['local_array_bytes']:,} B local entry stacks), "
+                 f"{row['spill_stores']} spill stores, {row['reloads']} reloads, "
+                 f"{row['spill_line_bytes']:,} B of spill lines"))
     if args.json:
         Path(args.json).write_text(json.dumps({"mesh": args.mesh, "rays": args.rays, "llc": llc, "cpu": args.cpu,
                                                "machine": layerbvh.cpu_model(), "command": " ".join(sys.argv),

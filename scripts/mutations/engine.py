@@ -236,6 +236,12 @@ ENGINE = (
              ' + [("idx", 4, ms.BY_LANE)]\n',
              "\n",
              ("tests/tools/test_locality.py::test_first_step_reads_no_state_record",)),
+    Mutation("replay_forgets_the_stack_frame", "the locality replay's packet iterations touch no stack frame "
+             "(a CPU kernel's spilled registers, which valgrind counts at an 8 KiB D1)",
+             "layerbvh/memstores.py",
+             "    if nbytes > 0:\n        for site, write in",
+             "    if nbytes < 0:\n        for site, write in",
+             ("tests/tools/test_locality.py::test_a_cpu_kernels_stack_frame_is_written_and_read_each_packet_iteration",)),
     Mutation("total_leaves_out_setup", "the locality model's total leaves out the trace call's set-up passes "
              "(the layer modes' ray-record packing: 56 B a ray that per_ray does not move)",
              "layerbvh/locality.py",

@@ -225,6 +225,36 @@ def test_two_warps_transactions_by_hand():
     assert r.dram_bytes_per_ray == 15 * 32 / 8 and r.l1_hit_rate == 25 / 40
 
 
+def test_a_cpu_kernels_stack_frame_is_written_and_read_each_packet_iteration(bunny):
+    """On a CPU a kernel's spilled registers are memory (scripts/kernel_frame.py measures the frame
+    lines its spills and reloads touch): with `frame_bytes`, each packet iteration writes, then reads,
+    every segment of its packet slot's frame (memsites.S_FRAME_WRITE, S_FRAME_READ). A 64 KiB L1
+    keeps it (its first writes miss, nothing after); an 8 KiB L1 under node traffic loses lines
+    between iterations. The traversal's own requests and hits do not change; without a frame
+    nothing is accessed."""
+    v, f = bunny
+    o, d, tmax = _rays(v, "incoherent")
+    o, d, tmax = o[:2000], d[:2000], tmax[:2000]
+    bvh = layerbvh.build(v, f, branching=4, batch_rays=len(o))
+
+    def cpu(l1_kib):
+        return Preset(name="cpu", description="one core", kind="cpu", units=1, resident_warps=1, block_warps=2048,
+                      warp=8, segment_bytes=64, levels=(CacheLevel("L1", l1_kib << 10, 8, 64, shared=False),
+                                                        CacheLevel("L2", 1 << 20, 16, 64, shared=True)),
+                      flush_private_each_kernel=False, source="test")
+    lines = 1024 // 64
+    for mode in ("per_ray", "layer_sorted"):
+        plain = L.replay_tree(bvh, o, d, tmax, mode, False, 8, cpu(64))
+        rep = L.replay_tree(bvh, o, d, tmax, mode, False, 8, cpu(64), frame_bytes=1024)
+        assert plain.tally[[ms.S_FRAME_READ, ms.S_FRAME_WRITE]].sum() == 0
+        assert (rep.prim == plain.prim).all() and (rep.tally[:ms.S_END, 1] == plain.tally[:ms.S_END, 1]).all()
+        for site in (ms.S_FRAME_WRITE, ms.S_FRAME_READ):
+            assert rep.tally[site, 0] == rep.tally[site, 1] == rep.warp_iterations * lines, (mode, site)
+        assert rep.levels_hit[ms.S_FRAME_WRITE, 1:].sum() == lines and rep.levels_hit[ms.S_FRAME_READ, 1:].sum() == 0
+        small = L.replay_tree(bvh, o, d, tmax, mode, False, 8, cpu(8), frame_bytes=1024)
+        assert small.levels_hit[[ms.S_FRAME_WRITE, ms.S_FRAME_READ], 1:].sum() > 10 * lines, mode
+
+
 def test_the_replays_stores_are_the_cache_models_write_misses(bunny):
     """The replay's stores (the local entry stack, the kernels' outputs: memsites.STORE_SITES) go to the cache model as
     stores: every store transaction that L1 did not hold is counted a write miss, and no load is.
