@@ -94,8 +94,12 @@ def _walk(m, lay: DeviceLayout, rays, s: RayState, stack: EntryStack | None, cap
     # Without instances both stay MISS (unused, but every name the loop touches must exist).
     in_inst = m.UInt32(s.inst) if instanced else m.UInt32(MISS)
     hit_inst = m.UInt32(s.hit_inst) if instanced else m.UInt32(MISS)
-    loc_link = dr.alloc_local(m.UInt32, cap + 1, m.UInt32(0))
-    loc_t = dr.alloc_local(m.Float, cap + 1, m.Float(0))
+    # Uninitialized: a slot is read only below `nl` (what this walk pushed) or, as a pop's select
+    # that other lanes discard, at nl itself. Filled with zeros, each packet first wrote its whole
+    # local stack (an LLVM memset per packet: 4 KiB for 8 lanes of 65 slots), which the locality
+    # model never had (PERFORMANCE.md entry 69).
+    loc_link = dr.alloc_local(m.UInt32, cap + 1)
+    loc_t = dr.alloc_local(m.Float, cap + 1)
     nl = m.UInt32(0)
     link, sp = m.UInt32(s.link), m.UInt32(s.sp)
     t_best = m.Float(s.t)

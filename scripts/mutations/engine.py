@@ -242,6 +242,12 @@ ENGINE = (
              "    if nbytes > 0:\n        for site, write in",
              "    if nbytes < 0:\n        for site, write in",
              ("tests/tools/test_locality.py::test_a_cpu_kernels_stack_frame_is_written_and_read_each_packet_iteration",)),
+    Mutation("walk_fills_its_local_stacks", "the walk's local entry stacks zero-filled (a memset of the whole "
+             "stack per packet: the CPU's per_ray ~20% slower, and traffic the locality model does not have)",
+             "layerbvh/walk.py",
+             "    loc_link = dr.alloc_local(m.UInt32, cap + 1)\n",
+             "    loc_link = dr.alloc_local(m.UInt32, cap + 1, m.UInt32(0))\n",
+             ("tests/engine/test_engine_kernels.py::test_the_walks_local_stacks_are_never_filled",)),
     Mutation("total_leaves_out_setup", "the locality model's total leaves out the trace call's set-up passes "
              "(the layer modes' ray-record packing: 56 B a ray that per_ray does not move)",
              "layerbvh/locality.py",

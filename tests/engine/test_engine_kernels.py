@@ -135,3 +135,26 @@ def test_ray_records_are_packed_by_one_kernel():
         dr.set_flag(dr.JitFlag.KernelHistory, was)
     assert kinds == [dr.KernelType.JIT], kinds
     assert np.array_equal(np.asarray(rec).reshape(n, 8), np.stack(cols + [np.zeros(n, np.float32)] * 2, 1))
+
+
+@pytest.mark.parametrize("mode", ["per_ray", "layer_sorted"])
+def test_the_walks_local_stacks_are_never_filled(bunny, mode):
+    """A walk reads its local entry stack only where it pushed (below `nl`, or a pop's select that
+    other lanes discard), so the stack is left uninitialized: zero-filled, every packet first wrote
+    all of it (an LLVM memset of 4 KiB per 8-lane packet on a deep tree, ~20% of per_ray's time on
+    1M incoherent rays: PERFORMANCE.md entry 69), traffic the locality model does not have. The
+    traversal kernels of both modes hold their local arrays and fill none of them."""
+    v, f = bunny
+    o, d = meshes.incoherent_rays(v, 4000, seed=0)
+    bvh = layerbvh.build(v, f)
+    was = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()
+    try:
+        np.asarray(bvh.trace(o, d, mode=mode, stats=False).prim)
+        irs = [k["ir"].getvalue() for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, was)
+    walks = [ir for ir in irs if "alloca" in ir]
+    assert len(walks) == (1 if mode == "per_ray" else 2), len(walks)
+    assert not any("memset" in ir for ir in walks)
