@@ -111,11 +111,10 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
     g_t = np.zeros((n_all if layer else 1, cap_g), np.float32)
 
     local_words = lanes_held * (cap_max + 1)
-    sizes_frame = {"frame": preset.units * preset.resident_warps * frame_bytes}
     sizes = {"nodes": lay.nodes.nbytes, "tris": lay.tris.nbytes, "treelet_first": lay.treelet_first.nbytes,
              "node_treelet": lay.node_treelet.nbytes, "stack_link": n_all * cap_g * 4, "stack_t": n_all * cap_g * 4,
              "local_link": local_words * 4, "local_t": local_words * 4,
-             **{region: n_all * 4 for _, region in RESULT_REGIONS}, "valid": n_all, "idx": n_all * 4, **sizes_frame}
+             **{region: n_all * 4 for _, region in RESULT_REGIONS}, "valid": n_all, "idx": n_all * 4}
     # The state record's format, as wavefront.trace picks it (the replay flattens instances).
     record_bytes = 4 * StateRecords.words(False, cap_g, n_all)
     compact = record_bytes == 4 * COMPACT_RECORD_WORDS
@@ -140,10 +139,11 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
         first_start = [("ray_0", 4, ms.BY_SLOT), ("idx", 4, ms.BY_LANE), ("node_treelet", 4, ms.BY_NONE),
                        ("tmax", 4, ms.BY_SLOT)] + [(f"ray_{k}", 4, ms.BY_SLOT) for k in range(1, 6)]
     else:
-        # per_ray's kernel reads each lane's slot (the valid rays' indices, by lane: its "state" load,
-        # as in the layer modes' first step), then its ray and tmax by slot.
+        # per_ray's kernel reads each lane's slot (the valid rays' indices: its "state" load), then o, d, tmax by slot.
         sizes.update({f"ray_{k}": n_all * 4 for k in range(PER_RAY_LOADS)})
         start = [(f"ray_{k}", 4, ms.BY_SLOT) for k in range(PER_RAY_LOADS)] + [("idx", 4, ms.BY_LANE)]
+    # A CPU kernel's stack frames, one per packet slot, last (with none, every region stays where it was).
+    sizes.update({"frame": preset.units * preset.resident_warps * frame_bytes} if frame_bytes else {})
     base = _regions(sizes)
     site_base = np.zeros(ms.SITES, np.int64)
     site_bytes = np.ones(ms.SITES, np.int64)
@@ -155,7 +155,7 @@ def replay(lay: LayerLayout, o, d, tmax, mode: str, any_hit: bool, warp: int, pr
             (ms.S_TF, "treelet_first", 4, False), (ms.S_NODE, "nodes", node_format(lay.branching).bytes, False),
             (ms.S_LOC_W_LINK, "local_link", 4, True), (ms.S_LOC_W_T, "local_t", 4, True)):
         site_base[site], site_bytes[site], site_local[site] = base[region], nbytes, local
-    site_base[ms.S_FRAME_READ], site_bytes[ms.S_FRAME_READ] = base["frame"], frame_bytes
+    site_base[ms.S_FRAME_READ], site_bytes[ms.S_FRAME_READ] = base.get("frame", 0), frame_bytes
     for j in range(1, ms.MAX_PUSH):  # a wide node's further pushes (local, like the first)
         for site, region in zip((ms.S_PUSH + 2 * (j - 1), ms.S_PUSH + 2 * (j - 1) + 1), ("local_link", "local_t")):
             site_base[site], site_bytes[site], site_local[site] = base[region], 4, True

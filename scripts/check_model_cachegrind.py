@@ -268,11 +268,11 @@ def model_misses(bvh, o, d, n: int, mode: str, pre, frame_bytes: int = 0) -> dic
             "between_steps_lines": (got[2 * n][3] - got[n][3]) / n / LINE}
 
 
-def kernel_frames(bvh, o, d, modes) -> dict:
+def kernel_frames(bvh, o, d, modes) -> tuple[dict, int | None]:
     """Per mode, the stack-frame bytes a packet iteration touches (the spill lines of its kernels,
     scripts/kernel_frame.py: llc's assembly of the IR this process compiles), and the kernels'
     lanes: the model takes them where valgrind's children run as many lanes (an AVX-512 host's
-    kernels are not the ones valgrind runs). {} without llc 19 (the frames then left out)."""
+    kernels are not the ones valgrind runs). ({}, None) without llc 19 (the frames then left out)."""
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     import kernel_frame
     import layerbvh
@@ -280,10 +280,10 @@ def kernel_frames(bvh, o, d, modes) -> dict:
     if llc is None:
         print("check_model_cachegrind: llc 19 is missing (Debian: apt-get install llvm-19): the model leaves "
               "out the kernels' stack frames", flush=True)
-        return {}
+        return {}, None
     frames = kernel_frame.spill_bytes_by_mode(kernel_frame.kernel_rows(bvh, o, d, modes, llc))
     print(f"kernel stack frames (spill lines a packet iteration touches): {frames}", flush=True)
-    return {**frames, "lanes": layerbvh.llvm_vector_width()}
+    return frames, layerbvh.llvm_vector_width()
 
 
 def load_mesh(spec: str):
@@ -309,7 +309,7 @@ def check(args) -> dict:
     np.savez(work / "rays.npz", o=o, d=d)
     print(f"{args.mesh}: {len(f):,} triangles, K={args.branching}, H={args.height}; {n:,} incoherent rays",
           flush=True)
-    frames = kernel_frames(bvh, o[:n], d[:n], args.modes)
+    frames, frame_lanes = kernel_frames(bvh, o[:n], d[:n], args.modes)
     rows, lanes = [], None
     for d1 in args.d1:
         t0 = time.perf_counter()
@@ -317,7 +317,7 @@ def check(args) -> dict:
         lanes = cgs["lanes"]  # Dr.Jit's packet width under valgrind (8: no AVX-512 there)
         pre = model_preset(d1, args.ll, lanes)
         for mode in args.modes:
-            fb = frames.get(mode, 0) if frames.get("lanes") == lanes else 0
+            fb = frames.get(mode, 0) if frame_lanes == lanes else 0
             cg, mo = cgs[mode], model_misses(bvh, o, d, n, mode, pre, fb)
             exact = bool(np.array_equal(cg["prim"], mo["prim"]))
             for level in ("D1", "LL"):

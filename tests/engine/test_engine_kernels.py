@@ -12,16 +12,21 @@ from layerbvh import meshes
 from layerbvh.loopstate import body_traces
 
 
-def _launched(fn) -> set[str]:
-    """Hashes of the compiled (JIT) kernels `fn` launches."""
+def _history(fn) -> list[dict]:
+    """Dr.Jit's kernel history of what `fn` launches."""
     was = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     dr.kernel_history()  # what came before is not ours
     try:
         fn()
-        return {k["hash"] for k in dr.kernel_history() if k.get("hash")}
+        return dr.kernel_history()
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, was)
+
+
+def _launched(fn) -> set[str]:
+    """Hashes of the compiled (JIT) kernels `fn` launches."""
+    return {k["hash"] for k in _history(fn) if k.get("hash")}
 
 
 def _misaligned(a: np.ndarray) -> np.ndarray:
@@ -147,14 +152,8 @@ def test_the_walks_local_stacks_are_never_filled(bunny, mode):
     v, f = bunny
     o, d = meshes.incoherent_rays(v, 4000, seed=0)
     bvh = layerbvh.build(v, f)
-    was = dr.flag(dr.JitFlag.KernelHistory)
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    dr.kernel_history()
-    try:
-        np.asarray(bvh.trace(o, d, mode=mode, stats=False).prim)
-        irs = [k["ir"].getvalue() for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, was)
+    irs = [k["ir"].getvalue() for k in _history(lambda: np.asarray(bvh.trace(o, d, mode=mode, stats=False).prim))
+           if k["type"] == dr.KernelType.JIT]
     walks = [ir for ir in irs if "alloca" in ir]
     assert len(walks) == (1 if mode == "per_ray" else 2), len(walks)
     assert not any("memset" in ir for ir in walks)
